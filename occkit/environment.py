@@ -1,0 +1,103 @@
+"""What occkit runs on: library versions, compute devices, the sparse-convolution backend, grids and taxonomies.
+
+Printed by ``occkit info`` and stored beside benchmark and training results, so numbers can be traced to the
+software and hardware that produced them.
+"""
+
+from __future__ import annotations
+
+import importlib.metadata
+import platform
+
+__all__ = ["environment_report", "format_environment_report"]
+
+_PACKAGES = ("torch", "torchvision", "timm", "numpy", "numba", "onnxruntime")
+
+
+def _package_versions() -> dict[str, str]:
+    versions = {}
+    for name in _PACKAGES:
+        try:
+            versions[name] = importlib.metadata.version(name)
+        except importlib.metadata.PackageNotFoundError:
+            continue
+    # spconv ships one distribution per CUDA version (spconv, spconv-cu120, spconv-cu126, ...).
+    for dist in importlib.metadata.distributions():
+        name = dist.metadata["Name"] or ""
+        if name.lower().startswith("spconv"):
+            versions[name] = dist.version
+    return versions
+
+
+def _devices() -> dict:
+    import torch
+
+    cuda = torch.cuda.is_available()
+    return {
+        "cuda_available": cuda,
+        "cuda_version": torch.version.cuda,
+        "gpus": [torch.cuda.get_device_name(i) for i in range(torch.cuda.device_count())] if cuda else [],
+        "cpu_threads": torch.get_num_threads(),
+    }
+
+
+def _sparse_backend() -> dict:
+    try:
+        from occkit.models import sparse
+    except ImportError as error:
+        return {"available": False, "error": str(error)}
+    return {"available": True, "cpu_backward_patched": sparse.SPCONV_CPU_BACKWARD_PATCHED}
+
+
+def environment_report() -> dict:
+    """A JSON-ready description of the software, hardware, grids and taxonomies occkit sees."""
+    from occkit import __version__
+    from occkit.classes import TAXONOMIES
+    from occkit.geometry.grid import OCC3D_GRID, SURROUNDOCC_GRID
+
+    return {
+        "occkit": __version__,
+        "python": platform.python_version(),
+        "platform": platform.platform(),
+        "packages": _package_versions(),
+        "devices": _devices(),
+        "sparse_conv": _sparse_backend(),
+        "grids": {
+            name: {**grid.to_dict(), "shape": list(grid.shape)}
+            for name, grid in (("occ3d", OCC3D_GRID), ("surroundocc", SURROUNDOCC_GRID))
+        },
+        "taxonomies": {
+            name: {"classes": list(t.classes), "empty_index": t.empty_index, "ignore_index": t.ignore_index}
+            for name, t in TAXONOMIES.items()
+        },
+    }
+
+
+def format_environment_report(report: dict) -> str:
+    """Human-readable text of :func:`environment_report`."""
+    devices = report["devices"]
+    sparse = report["sparse_conv"]
+    if devices["cuda_available"]:
+        device_line = f"CUDA {devices['cuda_version']}: {', '.join(devices['gpus'])}"
+    else:
+        device_line = f"CPU only ({devices['cpu_threads']} threads)"
+    if sparse["available"]:
+        sparse_line = "spconv" + (" (CPU backward fix active)" if sparse["cpu_backward_patched"] else "")
+    else:
+        sparse_line = f"unavailable: {sparse['error']}"
+    lines = [
+        f"occkit {report['occkit']} on Python {report['python']} ({report['platform']})",
+        "packages: " + ", ".join(f"{name} {version}" for name, version in report["packages"].items()),
+        f"device:   {device_line}",
+        f"sparse:   {sparse_line}",
+        "grids:",
+    ]
+    for name, grid in report["grids"].items():
+        lines.append(
+            f"  {name:<12} range {grid['point_cloud_range']}  voxel {grid['voxel_size']}  shape {grid['shape']}"
+        )
+    lines.append("taxonomies:")
+    for name, taxonomy in report["taxonomies"].items():
+        classes = taxonomy["classes"]
+        lines.append(f"  {name:<12} {len(classes)} classes: " + " ".join(f"{i}:{c}" for i, c in enumerate(classes)))
+    return "\n".join(lines)

@@ -1,0 +1,1 @@
+"""Networks: encoders, view transforms, fusion, heads and the zoo of complete models."""
