@@ -41,7 +41,11 @@ def _write_json(path: Path, payload: dict) -> None:
 Command = tuple[str, Callable[[argparse.ArgumentParser], None], Callable[[argparse.Namespace], int]]
 
 COMMANDS: dict[str, Command] = {
-    "info": ("show versions, devices, the sparse-convolution backend, grids and class taxonomies", _add_info, _run_info),
+    "info": (
+        "show versions, devices, the sparse-convolution backend, grids and class taxonomies",
+        _add_info,
+        _run_info,
+    ),
 }
 
 

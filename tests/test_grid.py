@@ -63,7 +63,9 @@ def test_world_to_index_floor_and_bounds():
 def test_index_world_round_trip(index, fraction):
     index = torch.tensor(index)
     size = torch.tensor(OCC3D_GRID.voxel_size, dtype=torch.float64)
-    inside_point = OCC3D_GRID.index_to_world(index, torch.float64) + (torch.tensor(fraction, dtype=torch.float64) - 0.5) * size
+    inside_point = (
+        OCC3D_GRID.index_to_world(index, torch.float64) + (torch.tensor(fraction, dtype=torch.float64) - 0.5) * size
+    )
     back, inside = OCC3D_GRID.world_to_index(inside_point)
     assert inside.item()
     assert torch.equal(back, index)

@@ -230,3 +230,41 @@ def test_cuda_is_left_unpatched_and_matches_cpu():
         results.append((dense.cpu(), leaf.grad.cpu(), net[0].weight.grad.cpu()))
     for cpu_value, cuda_value in zip(*results, strict=True):
         torch.testing.assert_close(cuda_value, cpu_value, rtol=1e-3, atol=1e-3)
+
+
+def test_cpu_scatter_add_is_race_free_on_large_layers():
+    # spconv's own CPU scatter_add shares row pointers between threads; with 200k rows it adds rows to wrong
+    # outputs on every run with two threads. occkit's replacement must match index_add_ exactly.
+    from spconv.pytorch import ops as spconv_ops
+    from spconv.pytorch.cppcore import torch_tensor_to_tv
+
+    generator = torch.Generator().manual_seed(0)
+    rows, channels = 200_000, 16
+    inputs = torch.randn(rows, channels, generator=generator)
+    indices = torch.randperm(rows, generator=generator).int()
+    out = torch.ones(rows, channels)
+    spconv_ops.SpconvOps.scatter_add_cpu(
+        torch_tensor_to_tv(out), torch_tensor_to_tv(inputs), torch_tensor_to_tv(indices[: rows // 2])
+    )
+    expected = torch.ones(rows, channels).index_add_(0, indices[: rows // 2].long(), inputs[: rows // 2])
+    assert torch.equal(out, expected)
+
+
+def test_large_submanifold_conv_matches_dense_conv():
+    # Big enough that the parallel CPU kernels split the work between threads.
+    generator = torch.Generator().manual_seed(1)
+    shape = (48, 48, 24)
+    flat = torch.randperm(48 * 48 * 24, generator=generator)[:20_000]
+    coords = torch.stack((flat // (48 * 24), (flat // 24) % 48, flat % 24), dim=1)
+    features = torch.randn(coords.shape[0], 8, generator=generator)
+    conv = SubMConv3d(8, 8, 3, padding=1, bias=False)
+    torch.nn.init.normal_(conv.weight, generator=generator)
+    indices = torch.cat((torch.zeros(coords.shape[0], 1, dtype=torch.long), coords), dim=1)
+    out = conv(sparse_tensor_from_voxels(features, indices, shape, 1))
+    dense_in = torch.zeros(1, 8, *shape)
+    dense_in[0, :, coords[:, 0], coords[:, 1], coords[:, 2]] = features.T
+    dense_weight = conv.weight.permute(0, 4, 1, 2, 3)  # (out, k0, k1, k2, in) -> (out, in, k0, k1, k2)
+    dense_out = torch.nn.functional.conv3d(dense_in, dense_weight, padding=1)
+    out_coords = out.indices[:, 1:].long()
+    expected = dense_out[0, :, out_coords[:, 0], out_coords[:, 1], out_coords[:, 2]].T
+    torch.testing.assert_close(out.features, expected, rtol=1e-4, atol=1e-4)

@@ -76,9 +76,7 @@ class VoxelGrid:
     @property
     def shape(self) -> tuple[int, int, int]:
         """Number of voxels ``(X, Y, Z)``."""
-        return tuple(
-            int(round((self.upper[a] - self.lower[a]) / self.voxel_size[a])) for a in range(3)
-        )  # type: ignore[return-value]
+        return tuple(int(round((self.upper[a] - self.lower[a]) / self.voxel_size[a])) for a in range(3))  # type: ignore[return-value]
 
     @property
     def num_voxels(self) -> int:
@@ -141,7 +139,9 @@ class VoxelGrid:
         return {"point_cloud_range": list(self.point_cloud_range), "voxel_size": list(self.voxel_size)}
 
     def __repr__(self) -> str:
-        return f"VoxelGrid(range={list(self.point_cloud_range)}, voxel_size={list(self.voxel_size)}, shape={self.shape})"
+        return (
+            f"VoxelGrid(range={list(self.point_cloud_range)}, voxel_size={list(self.voxel_size)}, shape={self.shape})"
+        )
 
 
 #: Occ3D-nuScenes: ego frame, 200 x 200 x 16 voxels of 0.4 m.

@@ -12,6 +12,13 @@ the stream, so we rebind the name ``get_current_stream`` inside ``spconv.pytorch
 function sees) to one returning the null stream ``0``, the value ``ops.py`` itself uses for CPU tensors.
 The rebinding happens once, at import, and only when CUDA is unavailable: with CUDA the original getter works for
 CPU tensors too, and spconv is left untouched. No file of spconv is modified.
+
+A second CPU bug, fixed here too: the CPU kernel ``scatter_add_cpu`` (``spconv/csrc/sparse/gather.py``) runs its
+rows in parallel threads but shares its two row pointers between the threads (declared outside the parallel
+lambda), so with more than one thread rows are added to the wrong outputs: wrong forward features and wrong input
+gradients, more often the larger the layer or the busier the machine. ``spconv.pytorch.ops`` calls it only for CPU
+tensors; we give that module a ``SpconvOps`` whose ``scatter_add_cpu`` is ``torch.index_add_`` on the same memory,
+everything else delegating to spconv's own class. CUDA tensors never reach it.
 """
 
 from __future__ import annotations
@@ -55,6 +62,33 @@ def _patch_cpu_backward() -> bool:
 
 #: True when spconv's stream getter is rebound so that CPU backward works (always on a machine without CUDA).
 SPCONV_CPU_BACKWARD_PATCHED: bool = _patch_cpu_backward()
+
+
+class _RaceFreeSpconvOps:
+    """spconv's ``SpconvOps`` with a thread-safe ``scatter_add_cpu``; every other attribute is spconv's own."""
+
+    occkit_patch = True
+
+    def __init__(self, ops: type) -> None:
+        self._ops = ops
+
+    def __getattr__(self, name: str):
+        return getattr(self._ops, name)
+
+    @staticmethod
+    def scatter_add_cpu(out, inp, inds) -> None:
+        """``out[inds[i]] += inp[i]`` for ``i < len(inds)``, on spconv (tensorview) CPU tensors, in place."""
+        indices = torch.from_numpy(inds.numpy_view()).long()
+        rows = torch.from_numpy(inp.numpy_view())[: indices.numel()]
+        torch.from_numpy(out.numpy_view()).index_add_(0, indices, rows)
+
+
+def _patch_cpu_scatter_add() -> None:
+    if not getattr(_spconv_ops.SpconvOps, "occkit_patch", False):
+        _spconv_ops.SpconvOps = _RaceFreeSpconvOps(_spconv_ops.SpconvOps)
+
+
+_patch_cpu_scatter_add()
 
 
 def sparse_tensor_from_voxels(
