@@ -1,0 +1,159 @@
+"""Writing the nuScenes + Occ3D-nuScenes on-disk layout, byte for byte reproducibly.
+
+Layout under the dataset root::
+
+    <version>/{category,attribute,visibility,instance,sensor,calibrated_sensor,ego_pose,log,scene,sample,
+               sample_data,sample_annotation,map}.json
+    maps/<token>.png                      drivable-area mask per log (nuscenes-devkit opens it)
+    samples/CAM_*/<log>__CAM_*__<timestamp>.jpg
+    samples/LIDAR_TOP/<log>__LIDAR_TOP__<timestamp>.pcd.bin      float32 (N, 5): x, y, z, intensity, ring
+    sweeps/LIDAR_TOP/<log>__LIDAR_TOP__<timestamp>.pcd.bin
+    gts/<scene>/<sample_token>/labels.npz semantics, mask_lidar, mask_camera: uint8 (200, 200, 16)
+    annotations.json                      Occ3D-style scene infos with train/val splits
+
+Reproducibility: tokens are hashes of names, tables are written in a fixed order, and ``.npz`` archives are
+written with fixed zip timestamps (``numpy.savez`` stamps the current time into every archive).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import zipfile
+from pathlib import Path
+
+import numpy as np
+
+from occkit.classes import NUSCENES_TO_OCC3D
+
+__all__ = [
+    "TABLE_NAMES",
+    "ATTRIBUTES",
+    "VISIBILITY_LEVELS",
+    "make_token",
+    "static_tables",
+    "write_json",
+    "write_jpeg",
+    "write_png",
+    "write_points",
+    "save_npz",
+]
+
+#: The 13 tables of a nuScenes version folder, in the devkit's load order.
+TABLE_NAMES = (
+    "category",
+    "attribute",
+    "visibility",
+    "instance",
+    "sensor",
+    "calibrated_sensor",
+    "ego_pose",
+    "log",
+    "scene",
+    "sample",
+    "sample_data",
+    "sample_annotation",
+    "map",
+)
+
+#: nuScenes attribute names.
+ATTRIBUTES = (
+    "vehicle.moving",
+    "vehicle.stopped",
+    "vehicle.parked",
+    "cycle.with_rider",
+    "cycle.without_rider",
+    "pedestrian.sitting_lying_down",
+    "pedestrian.standing",
+    "pedestrian.moving",
+)
+
+#: nuScenes visibility bins: token -> (level, description).
+VISIBILITY_LEVELS = {
+    "1": ("v0-40", "visibility of whole object is between 0 and 40%"),
+    "2": ("v40-60", "visibility of whole object is between 40 and 60%"),
+    "3": ("v60-80", "visibility of whole object is between 60 and 80%"),
+    "4": ("v80-100", "visibility of whole object is between 80 and 100%"),
+}
+
+_SENSORS = (
+    ("CAM_FRONT", "camera"),
+    ("CAM_FRONT_RIGHT", "camera"),
+    ("CAM_FRONT_LEFT", "camera"),
+    ("CAM_BACK", "camera"),
+    ("CAM_BACK_LEFT", "camera"),
+    ("CAM_BACK_RIGHT", "camera"),
+    ("LIDAR_TOP", "lidar"),
+)
+
+
+def make_token(*parts: object) -> str:
+    """A 32-hex-digit token, a pure function of its parts (nuScenes tokens have the same form)."""
+    return hashlib.md5("/".join(str(p) for p in parts).encode()).hexdigest()
+
+
+def static_tables(namespace: str) -> dict[str, list[dict]]:
+    """The tables that do not depend on the scenes: category, attribute, visibility, sensor."""
+    # All 32 categories with their nuScenes-lidarseg index (the order of NUSCENES_TO_OCC3D).
+    category = [
+        {"token": make_token(namespace, "category", name), "name": name, "description": "", "index": index}
+        for index, name in enumerate(NUSCENES_TO_OCC3D)
+    ]
+    attribute = [
+        {"token": make_token(namespace, "attribute", name), "name": name, "description": ""} for name in ATTRIBUTES
+    ]
+    visibility = [
+        {"token": token, "level": level, "description": description}
+        for token, (level, description) in VISIBILITY_LEVELS.items()
+    ]
+    sensor = [
+        {"token": make_token(namespace, "sensor", channel), "channel": channel, "modality": modality}
+        for channel, modality in _SENSORS
+    ]
+    return {"category": category, "attribute": attribute, "visibility": visibility, "sensor": sensor}
+
+
+def write_json(path: Path, payload: object) -> None:
+    """JSON in the nuScenes style (one field per line), deterministic."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(payload, indent=0, ensure_ascii=False) + "\n")
+
+
+def write_jpeg(path: Path, image: np.ndarray, quality: int = 92) -> None:
+    """``(H, W, 3)`` uint8 RGB image as a baseline JPEG (libjpeg output is deterministic for fixed settings)."""
+    from PIL import Image
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    Image.fromarray(image, mode="RGB").save(path, format="JPEG", quality=quality, subsampling=2, optimize=False)
+
+
+def write_png(path: Path, image: np.ndarray) -> None:
+    """``(H, W)`` or ``(H, W, 3)`` uint8 image as PNG."""
+    from PIL import Image
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    Image.fromarray(image).save(path, format="PNG")
+
+
+def write_points(path: Path, points: np.ndarray) -> None:
+    """``(N, 5)`` points as the nuScenes ``.pcd.bin`` format: raw little-endian float32, row-major."""
+    if points.ndim != 2 or points.shape[1] != 5:
+        raise ValueError(f"{path}: LiDAR points must have shape (N, 5), got {points.shape}")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_bytes(np.ascontiguousarray(points, dtype="<f4").tobytes())
+
+
+def save_npz(path: Path, compressed: bool = True, **arrays: np.ndarray) -> None:
+    """``numpy.savez_compressed`` with a fixed timestamp in the zip entries, so equal arrays give equal bytes."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    buffer = io.BytesIO()
+    method = zipfile.ZIP_DEFLATED if compressed else zipfile.ZIP_STORED
+    with zipfile.ZipFile(buffer, "w", compression=method) as archive:
+        for name, array in arrays.items():
+            member = io.BytesIO()
+            np.lib.format.write_array(member, np.asanyarray(array), allow_pickle=False)
+            info = zipfile.ZipInfo(f"{name}.npy", date_time=(1980, 1, 1, 0, 0, 0))
+            info.compress_type = method
+            archive.writestr(info, member.getvalue())
+    path.write_bytes(buffer.getvalue())
