@@ -110,6 +110,7 @@ COMMANDS: dict[str, Command] = {
         _add_info,
         _run_info,
     ),
+    "sim": ("simulate a synthetic driving dataset in the nuScenes + Occ3D layout", _add_sim, _run_sim),
 }
 
 

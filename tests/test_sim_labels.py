@@ -295,16 +295,20 @@ def test_camera_mask_stops_at_the_first_occupied_voxel():
     cam2ego[:3, :3] = [[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]]
     cam2ego[:3, 3] = [1.7, 0.0, 1.5]
     intrinsics = np.array([[200.0, 0.0, 100.0], [0.0, 200.0, 50.0], [0.0, 0.0, 1.0]])
-    mask = camera_visibility(labels, OCC3D_GRID, [(cam2ego, intrinsics, 200, 100)], stride=2)
+    mask = camera_visibility(labels, OCC3D_GRID, [(cam2ego, intrinsics, 200, 100)])
     assert mask.dtype == np.uint8
     front = int(math.floor((10.2 + 40) / 0.4))  # the wall's first voxel layer along x
     assert mask[front:].any() and not mask[front + 1 :].any()  # nothing inside or behind the wall
     assert (labels[front][mask[front] == 1] == MANMADE).all()
     assert mask[front - 5 : front, 100, 6].all()  # free space on the optical axis is seen
     assert not mask[: int(math.floor((1.7 + 40) / 0.4))].any()  # nothing behind the camera
-    # Without the wall the rays run on.
+    # Without the wall the ground far ahead is seen, all of it within the view (grazing angles included).
     empty = occupancy_labels(Primitives.empty(), TERRAIN_ONLY, pose())
-    assert camera_visibility(empty, OCC3D_GRID, [(cam2ego, intrinsics, 200, 100)], stride=2)[front + 5 :].any()
+    seen = camera_visibility(empty, OCC3D_GRID, [(cam2ego, intrinsics, 200, 100)])
+    assert seen[front + 5 :].any()
+    # Ground from just past the image's lower edge (1.5 m / tan(14 deg) = 6 m ahead of the camera) to the grid's end.
+    ahead = slice(int(math.floor((1.7 + 6.5 + 40) / 0.4)), 199)
+    assert seen[ahead, 100, 2].all()
 
 
 # ------------------------------------------------------------------------------------------------ SurroundOcc

@@ -53,8 +53,6 @@ class SimConfig:
     """Share of scenes (the last ones) in the val split; at least one scene each when there are two or more."""
     mask_window: int = 1
     """mask_lidar accumulates the LiDAR sweeps of this many key-frame intervals on each side of the key frame."""
-    camera_mask_stride: int = 4
-    """mask_camera casts a ray through every stride-th pixel of each camera."""
     lidar_dropout: float = 0.05
     """Fraction of LiDAR returns dropped (absorbing surfaces, sensor noise)."""
     surroundocc: bool = False
@@ -77,8 +75,8 @@ class SimConfig:
             raise ValueError(f"version must be a plain folder name like v1.0-synth, got {self.version!r}")
         if not 0.0 <= self.val_fraction < 1.0:
             raise ValueError(f"val_fraction must be in [0, 1), got {self.val_fraction}")
-        if self.mask_window < 0 or self.camera_mask_stride < 1:
-            raise ValueError("mask_window must be >= 0 and camera_mask_stride >= 1")
+        if self.mask_window < 0:
+            raise ValueError(f"mask_window must be >= 0, got {self.mask_window}")
         if not 0.0 <= self.lidar_dropout < 1.0:
             raise ValueError(f"lidar_dropout must be in [0, 1), got {self.lidar_dropout}")
 

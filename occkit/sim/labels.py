@@ -363,48 +363,51 @@ def lidar_visibility(
     return visited.astype(np.uint8)
 
 
-def _pixel_rays(cam2ego: np.ndarray, intrinsics: np.ndarray, width: int, height: int, stride: int) -> np.ndarray:
-    """``(R, 3)`` unit directions in the grid's frame through the centre of every ``stride``-th pixel.
-
-    Sampled pixels sit in the middle of each ``stride x stride`` block.
-    """
-    u = np.arange(stride // 2, width, stride) + 0.5
-    v = np.arange(stride // 2, height, stride) + 0.5
-    uu, vv = np.meshgrid(u, v, indexing="xy")
-    pixels = np.stack((uu.ravel(), vv.ravel(), np.ones(uu.size)), axis=0)
-    rays = np.asarray(cam2ego, dtype=np.float64)[:3, :3] @ np.linalg.solve(np.asarray(intrinsics, np.float64), pixels)
-    return (rays / np.linalg.norm(rays, axis=0)).T
-
-
 def camera_visibility(
     semantics: np.ndarray,
     grid: VoxelGrid,
     cameras: Sequence[tuple[np.ndarray, np.ndarray, int, int]],
-    stride: int = 4,
-    max_distance: float = 80.0,
+    min_depth: float = 0.1,
 ) -> np.ndarray:
-    """Occ3D ``mask_camera``: voxels seen by the cameras, up to and including the first occupied one on each ray.
+    """Occ3D ``mask_camera``: occupied voxels the cameras see, and the free space in front of them.
+
+    As Occ3D does, one ray goes from a camera's centre to every occupied voxel that projects into its image;
+    the voxels it crosses, up to and including the first occupied one, are observed. The ray aims at the voxel's
+    point nearest the camera (nudged into the voxel) rather than its centre: a ground voxel seen at a grazing
+    angle would otherwise be hidden by its own neighbours in the ground layer.
 
     Args:
         semantics: ``(X, Y, Z)`` labels of the key frame; every label but 17 (free) blocks the view.
         grid: the label grid; its frame is the cameras' ``ego``.
         cameras: per camera, ``(cam2ego (4, 4), K (3, 3), width, height)``.
-        stride: cast one ray per ``stride x stride`` pixel block.
-        max_distance: ray length in metres.
+        min_depth: voxel centres closer than this to a camera's image plane are not targets of that camera.
 
     Returns:
-        ``(X, Y, Z)`` uint8, 1 where seen.
+        ``(X, Y, Z)`` uint8, 1 where observed.
     """
     semantics = _check_semantics(semantics, grid)
-    if stride < 1:
-        raise ValueError(f"stride must be >= 1, got {stride}")
+    occupied = semantics != FREE
+    index = np.argwhere(occupied)
+    size = np.asarray(grid.voxel_size)
+    low = np.asarray(grid.lower) + index * size
+    centres = low + size / 2
     origins, ends = [], []
     for cam2ego, intrinsics, width, height in cameras:
-        directions = _pixel_rays(cam2ego, intrinsics, int(width), int(height), stride)
-        centre = np.asarray(cam2ego, dtype=np.float64)[:3, 3]
-        origins.append(np.broadcast_to(centre, directions.shape))
-        ends.append(centre + directions * max_distance)
+        cam2ego = np.asarray(cam2ego, dtype=np.float64)
+        ego2cam = np.linalg.inv(cam2ego)
+        in_camera = centres @ ego2cam[:3, :3].T + ego2cam[:3, 3]
+        depth = in_camera[:, 2]
+        front = depth > min_depth
+        uv = (
+            in_camera[front, :2] / depth[front, None] @ np.asarray(intrinsics)[:2, :2].T + np.asarray(intrinsics)[:2, 2]
+        )
+        seen = np.flatnonzero(front)[(uv[:, 0] >= 0) & (uv[:, 0] < width) & (uv[:, 1] >= 0) & (uv[:, 1] < height)]
+        eye = cam2ego[:3, 3]
+        nearest = np.clip(eye, low[seen], low[seen] + size)
+        # One percent of the way to the centre: inside the target, but still in front of its neighbours.
+        ends.append(nearest + 0.01 * (centres[seen] - nearest))
+        origins.append(np.broadcast_to(eye, ends[-1].shape))
     if not ends:
         return np.zeros(grid.shape, dtype=np.uint8)
-    visited = traverse_rays(semantics != FREE, grid, np.concatenate(origins), np.concatenate(ends), True)
+    visited = traverse_rays(occupied, grid, np.concatenate(origins), np.concatenate(ends), True)
     return visited.astype(np.uint8)

@@ -183,20 +183,21 @@ def _link(rows: list[dict]) -> None:
 
 
 def _box_visibility(box: BoxState, cameras: list[CameraSpec], ego2globals: list[np.ndarray], pixels: list[int]) -> str:
-    """nuScenes visibility token: visible instance pixels over the pixels its box would cover unoccluded."""
+    """nuScenes visibility token: the share of the object's silhouette that the cameras see.
+
+    The silhouette is estimated from the camera where the unclipped box projects largest (about 70% of the rectangle
+    around its projected corners); parts outside every image count as unseen, as in nuScenes.
+    """
     corners = _box_corners(box)
-    expected = 0.0
+    silhouette = 0.0
     for camera, ego2global in zip(cameras, ego2globals, strict=True):
         global2cam = np.linalg.inv(ego2global @ camera.cam2ego)
         in_cam = corners @ global2cam[:3, :3].T + global2cam[:3, 3]
         if (in_cam[:, 2] <= 0.1).any():
             continue
         uv = in_cam[:, :2] / in_cam[:, 2:3] @ camera.K[:2, :2].T + camera.K[:2, 2]
-        u = np.clip(uv[:, 0], 0, camera.width)
-        v = np.clip(uv[:, 1], 0, camera.height)
-        # A box's silhouette fills about 70% of the rectangle around its projected corners.
-        expected += 0.7 * (u.max() - u.min()) * (v.max() - v.min())
-    ratio = sum(pixels) / expected if expected > 0 else 0.0
+        silhouette = max(silhouette, 0.7 * float(np.ptp(uv[:, 0]) * np.ptp(uv[:, 1])))
+    ratio = sum(pixels) / silhouette if silhouette > 0 else 0.0
     for token, upper in (("1", 0.4), ("2", 0.6), ("3", 0.8)):
         if ratio < upper:
             return token
@@ -318,7 +319,6 @@ def simulate_scene(config: SimConfig, index: int, root: Path, progress: Callable
                 semantics,
                 OCC3D_GRID,
                 [(c.cam2ego, c.K, c.width, c.height) for c in cameras],
-                stride=config.camera_mask_stride,
             )
         gt_path = f"gts/{scene.name}/{sample_token}/labels.npz"
         with timer("write"):

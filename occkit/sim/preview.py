@@ -1,0 +1,94 @@
+"""Contact sheets of a written dataset: the six cameras and a bird's-eye view of the occupancy labels.
+
+Reads only what ``occkit sim`` wrote (``annotations.json``, the JPEGs and ``labels.npz``), so it shows exactly
+what a reader of the dataset gets.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from occkit.classes import OCC3D_COLORS
+
+__all__ = ["bev_image", "contact_sheet"]
+
+# Camera tiles as a driver would see them: front row left to right, back row mirrored (looking backwards).
+_LAYOUT = (("CAM_FRONT_LEFT", "CAM_FRONT", "CAM_FRONT_RIGHT"), ("CAM_BACK_LEFT", "CAM_BACK", "CAM_BACK_RIGHT"))
+
+
+def bev_image(semantics: np.ndarray, mask: np.ndarray | None = None, free_index: int = 17) -> np.ndarray:
+    """Top-down colour image of occupancy labels: the class of the highest occupied voxel in each column.
+
+    Args:
+        semantics: ``(X, Y, Z)`` uint8 labels (ego x forward, y left).
+        mask: optional ``(X, Y, Z)`` visibility mask; columns with no visible voxel are drawn dark.
+        free_index: label of free space.
+
+    Returns:
+        ``(X, Y, 3)`` uint8 image with forward (+x) up and left (+y) on the left.
+    """
+    occupied = semantics != free_index
+    if mask is not None:
+        occupied &= mask.astype(bool)
+    depth = semantics.shape[2]
+    top = depth - 1 - np.argmax(occupied[:, :, ::-1], axis=2)  # highest occupied z per column
+    top_class = np.take_along_axis(semantics, top[:, :, None], axis=2)[:, :, 0]
+    palette = np.array(OCC3D_COLORS, dtype=np.uint8)
+    image = palette[np.minimum(top_class, len(palette) - 1)]
+    image[~occupied.any(axis=2)] = (30, 30, 30)
+    # Shade by height so that objects stand out from the ground they stand on.
+    shade = 0.6 + 0.4 * (top / max(depth - 1, 1))
+    image = (image * shade[:, :, None]).astype(np.uint8)
+    return image[::-1, ::-1]
+
+
+def contact_sheet(root: str | Path, out: str | Path, samples: int = 3, scene: str | None = None) -> Path:
+    """Write a PNG with ``samples`` key frames (evenly spread over one scene): cameras and a BEV per row.
+
+    Args:
+        root: dataset root written by ``occkit sim``.
+        out: PNG path.
+        samples: key frames to show.
+        scene: scene name (default: the first scene).
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from PIL import Image
+
+    root = Path(root)
+    infos = json.loads((root / "annotations.json").read_text())["scene_infos"]
+    scene = scene or sorted(infos)[0]
+    if scene not in infos:
+        raise KeyError(f"{root / 'annotations.json'} has no scene {scene!r}; scenes: {', '.join(sorted(infos))}")
+    frames = list(infos[scene].values())
+    chosen = [frames[i] for i in np.linspace(0, len(frames) - 1, min(samples, len(frames))).round().astype(int)]
+
+    figure = plt.figure(figsize=(16, 3.4 * len(chosen)), dpi=90)
+    grid = figure.add_gridspec(2 * len(chosen), 4, width_ratios=(1, 1, 1, 1.1), wspace=0.02, hspace=0.04)
+    for row, frame in enumerate(chosen):
+        for line, names in enumerate(_LAYOUT):
+            for column, name in enumerate(names):
+                axis = figure.add_subplot(grid[2 * row + line, column])
+                axis.set_axis_off()
+                camera = frame["camera_sensor"].get(name)
+                if camera is None:
+                    continue
+                with Image.open(root / camera["img_path"]) as image:
+                    axis.imshow(np.asarray(image.convert("RGB")))
+                axis.set_title(name, fontsize=7, pad=2)
+        with np.load(root / frame["gt_path"]) as labels:
+            bev = bev_image(labels["semantics"], labels["mask_camera"])
+        axis = figure.add_subplot(grid[2 * row : 2 * row + 2, 3])
+        axis.imshow(bev, interpolation="nearest")
+        axis.set_title(f"GT (camera mask), t = {frame['timestamp']}", fontsize=7, pad=2)
+        axis.set_axis_off()
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    figure.savefig(out, bbox_inches="tight")
+    plt.close(figure)
+    return out
