@@ -61,6 +61,7 @@ def _add_sim(parser: argparse.ArgumentParser) -> None:
         metavar="KEY=VALUE",
         help="override any SimConfig field, e.g. --set world.density=0.5 (repeatable)",
     )
+    parser.add_argument("--preview", type=Path, metavar="PNG", help="also draw a contact sheet of the first scene")
     parser.add_argument("--json", type=Path, metavar="FILE", help="also write the summary as JSON to FILE")
 
 
@@ -90,6 +91,10 @@ def _run_sim(args: argparse.Namespace) -> int:
         f"to {summary['root']} ({config.version})"
     )
     print("time per stage (s, summed over scenes): " + ", ".join(f"{k} {v}" for k, v in summary["timings"].items()))
+    if args.preview is not None:
+        from occkit.sim.preview import contact_sheet
+
+        print(f"wrote {contact_sheet(args.out, args.preview)}")
     if args.json is not None:
         _write_json(args.json, summary)
     return 0

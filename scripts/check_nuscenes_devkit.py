@@ -64,8 +64,18 @@ def main() -> None:
 
     nusc = NuScenes(version=args.version, dataroot=args.root, verbose=False)
     counts = dict.fromkeys(
-        ("scenes", "samples", "images", "lidar_sweeps", "lidar_points", "annotations", "boxes_in_sensor_frames",
-         "velocities", "occ3d_labels"), 0,
+        (
+            "scenes",
+            "samples",
+            "images",
+            "lidar_sweeps",
+            "lidar_points",
+            "annotations",
+            "boxes_in_sensor_frames",
+            "velocities",
+            "occ3d_labels",
+        ),
+        0,
     )
     counts["scenes"] = len(nusc.scene)
     for record in nusc.sample_data:
@@ -95,8 +105,12 @@ def main() -> None:
         os.makedirs(args.render, exist_ok=True)
         sample = nusc.sample[len(nusc.sample) // 2]
         nusc.render_sample_data(sample["data"]["CAM_FRONT"], out_path=os.path.join(args.render, "devkit_cam_front.png"))
-        nusc.render_sample_data(sample["data"]["LIDAR_TOP"], nsweeps=5, underlay_map=True,
-                                out_path=os.path.join(args.render, "devkit_lidar_top.png"))
+        nusc.render_sample_data(
+            sample["data"]["LIDAR_TOP"],
+            nsweeps=5,
+            underlay_map=True,
+            out_path=os.path.join(args.render, "devkit_lidar_top.png"),
+        )
     print(json.dumps({"devkit": "ok", **counts}, indent=2))
 
 

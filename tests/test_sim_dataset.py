@@ -162,3 +162,35 @@ def test_cli_errors_are_one_line(tmp_path, capsys):
     assert "must look like 800x450" in capsys.readouterr().err
     assert main(["sim", "--out", str(tmp_path / "d2"), "--set", "world.dense=1"]) == 2
     assert "did you mean 'density'" in capsys.readouterr().err
+
+
+def test_cli_in_parallel_matches_one_process(tmp_path, capsys):
+    # Two scenes in two spawned workers give the same bytes as one process; the summary and preview are written.
+    arguments = ["--scenes", "2", "--frames", "1", "--seed", "5", "--image-size", "176x64", "--cameras", "CAM_FRONT"]
+    assert (
+        main(
+            [
+                "sim",
+                "--out",
+                str(tmp_path / "par"),
+                "--workers",
+                "2",
+                *arguments,
+                "--json",
+                str(tmp_path / "summary.json"),
+                "--preview",
+                str(tmp_path / "sheet.png"),
+            ]
+        )
+        == 0
+    )
+    out = capsys.readouterr().out
+    assert "wrote 2 scenes, 2 key frames" in out
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["samples"] == 2 and summary["annotations"] > 0
+    assert (tmp_path / "sheet.png").stat().st_size > 10_000
+    serial = SimConfig(scenes=2, frames=1, seed=5, image_size=(176, 64), cameras=("CAM_FRONT",))
+    simulate_dataset(serial, tmp_path / "serial")
+    assert _files(tmp_path / "par") == _files(tmp_path / "serial")
+    splits = json.loads((tmp_path / "serial" / "splits.json").read_text())
+    assert splits == {"train": ["scene-0001"], "val": ["scene-0002"]}

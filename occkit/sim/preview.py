@@ -68,8 +68,8 @@ def contact_sheet(root: str | Path, out: str | Path, samples: int = 3, scene: st
     frames = list(infos[scene].values())
     chosen = [frames[i] for i in np.linspace(0, len(frames) - 1, min(samples, len(frames))).round().astype(int)]
 
-    figure = plt.figure(figsize=(16, 3.4 * len(chosen)), dpi=90)
-    grid = figure.add_gridspec(2 * len(chosen), 4, width_ratios=(1, 1, 1, 1.1), wspace=0.02, hspace=0.04)
+    figure = plt.figure(figsize=(20, 4.4 * len(chosen)), dpi=100)
+    grid = figure.add_gridspec(2 * len(chosen), 4, width_ratios=(1, 1, 1, 1.15), wspace=0.02, hspace=0.02)
     for row, frame in enumerate(chosen):
         for line, names in enumerate(_LAYOUT):
             for column, name in enumerate(names):
@@ -80,12 +80,14 @@ def contact_sheet(root: str | Path, out: str | Path, samples: int = 3, scene: st
                     continue
                 with Image.open(root / camera["img_path"]) as image:
                     axis.imshow(np.asarray(image.convert("RGB")))
-                axis.set_title(name, fontsize=7, pad=2)
+                axis.text(4, 4, name, fontsize=8, va="top", color="white", backgroundcolor=(0, 0, 0, 0.5))
         with np.load(root / frame["gt_path"]) as labels:
             bev = bev_image(labels["semantics"], labels["mask_camera"])
         axis = figure.add_subplot(grid[2 * row : 2 * row + 2, 3])
         axis.imshow(bev, interpolation="nearest")
-        axis.set_title(f"GT (camera mask), t = {frame['timestamp']}", fontsize=7, pad=2)
+        axis.text(
+            2, 2, f"Occ3D labels seen by the cameras\nts {frame['timestamp']}", fontsize=8, va="top", color="white"
+        )
         axis.set_axis_off()
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
