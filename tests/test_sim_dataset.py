@@ -10,9 +10,8 @@ import numpy as np
 import pytest
 
 from occkit.cli import main
-from occkit.geometry.grid import OCC3D_GRID
+from occkit.sim.consistency import boxes_in_cameras, lidar_in_occupied
 from occkit.sim.generate import SimConfig, simulate_dataset
-from occkit.sim.rig import LIDAR_TOP, pose_matrix
 from occkit.sim.world import WorldConfig
 from occkit.sim.writer import TABLE_NAMES
 
@@ -75,57 +74,15 @@ def test_same_arguments_give_identical_bytes(dataset, tmp_path):
 
 
 def test_lidar_points_fall_in_occupied_voxels(dataset):
-    tables = _tables(dataset)
-    sample = tables["sample"][0]
-    lidar = next(r for r in tables["sample_data"] if r["filename"].startswith("samples/LIDAR_TOP"))
-    calibration = next(c for c in tables["calibrated_sensor"] if c["token"] == lidar["calibrated_sensor_token"])
-    lidar2ego = pose_matrix(calibration["translation"], calibration["rotation"])
-    assert np.allclose(lidar2ego, LIDAR_TOP.lidar2ego)
-    points = np.fromfile(dataset / lidar["filename"], dtype=np.float32).reshape(-1, 5)[:, :3].astype(np.float64)
-    ego_points = points @ lidar2ego[:3, :3].T + lidar2ego[:3, 3]
-    with np.load(dataset / "gts" / tables["scene"][0]["name"] / sample["token"] / "labels.npz") as labels:
-        semantics = labels["semantics"]
-    import torch
-
-    index, inside = OCC3D_GRID.world_to_index(torch.from_numpy(ego_points))
-    index, inside = index.numpy(), inside.numpy()
-    # Points on a voxel face may floor into the free neighbour: accept either side of a face within 1 cm.
-    occupied = np.zeros(inside.sum(), dtype=bool)
-    for offset in np.array([[0, 0, 0], [-1, 0, 0], [0, -1, 0], [0, 0, -1]]):
-        nudged = OCC3D_GRID.world_to_index(torch.from_numpy(ego_points[inside] + offset * 0.01))[0].numpy()
-        nudged = np.clip(nudged, 0, np.array(OCC3D_GRID.shape) - 1)
-        occupied |= semantics[nudged[:, 0], nudged[:, 1], nudged[:, 2]] != 17
-    assert inside.sum() > 1000
-    assert occupied.mean() >= 0.95
+    report = lidar_in_occupied(dataset, "v1.0-synth")
+    assert report["key_frames"] == 1 and report["points_in_grid"] > 1000
+    assert report["share_in_occupied"] >= 0.95
 
 
-def test_boxes_project_into_the_cameras_that_see_them(dataset):
-    tables = _tables(dataset)
-    ego_pose = {r["token"]: r for r in tables["ego_pose"]}
-    cameras = []
-    for record in tables["sample_data"]:
-        calibration = next(c for c in tables["calibrated_sensor"] if c["token"] == record["calibrated_sensor_token"])
-        if calibration["camera_intrinsic"]:
-            pose = ego_pose[record["ego_pose_token"]]
-            cam2global = pose_matrix(pose["translation"], pose["rotation"]) @ pose_matrix(
-                calibration["translation"], calibration["rotation"]
-            )
-            cameras.append((np.linalg.inv(cam2global), np.array(calibration["camera_intrinsic"]), record))
-    visible = 0
-    for annotation in tables["sample_annotation"]:
-        if annotation["visibility_token"] not in ("3", "4"):
-            continue
-        centre = np.array(annotation["translation"])
-        hits = []
-        for global2cam, intrinsic, record in cameras:
-            in_cam = global2cam[:3, :3] @ centre + global2cam[:3, 3]
-            if in_cam[2] <= 0:
-                continue
-            u, v = (intrinsic @ in_cam)[:2] / in_cam[2]
-            hits.append(0 <= u < record["width"] and 0 <= v < record["height"])
-        visible += 1
-        assert any(hits), f"annotation {annotation['token']} is well visible but projects into no camera"
-    assert visible > 0
+def test_visible_boxes_project_into_a_camera(dataset):
+    report = boxes_in_cameras(dataset, "v1.0-synth")
+    assert report["visible_boxes"] > 0
+    assert report["centre_in_a_camera"] == report["visible_boxes"], report["misses"]
 
 
 def test_existing_output_needs_overwrite_and_failures_leave_nothing(tmp_path, dataset):

@@ -81,6 +81,10 @@ class Primitives:
             **{name: np.concatenate([getattr(p, name) for p in parts]) for name in Primitives.__dataclass_fields__}
         )
 
+    def select(self, mask: np.ndarray) -> Primitives:
+        """The solids where the ``(P,)`` boolean ``mask`` (or index array) selects."""
+        return Primitives(**{name: getattr(self, name)[mask] for name in Primitives.__dataclass_fields__})
+
     def radius_xy(self) -> np.ndarray:
         """``(P,)`` radius of a vertical cylinder around each solid's centre that contains it (for culling)."""
         return np.hypot(self.half_size[:, 0], self.half_size[:, 1])
