@@ -1,0 +1,133 @@
+"""Typed containers that flow from the data pipeline to models, losses and metrics.
+
+Shapes follow docs/conventions.md: occupancy ``(X, Y, Z)``, images ``(N, 3, H, W)`` for ``N`` cameras, points
+``(P, 5)`` as ``(x, y, z, intensity, time lag)`` in the LiDAR frame. Every geometric augmentation is a matrix:
+``img_aug`` maps original to augmented pixels, ``bev_aug`` maps the un-augmented LiDAR frame to the augmented one and
+``occ_aug`` does the same for the ego (occupancy) frame, so any stage can map points exactly.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, fields
+
+import torch
+from torch import Tensor
+
+__all__ = ["Sample", "Batch", "OccPrediction"]
+
+
+@dataclass
+class Sample:
+    """One key frame, after transforms.
+
+    Camera geometry is given relative to the key frame's ego pose (at the LiDAR timestamp), so the small ego motion
+    between the LiDAR and each camera's exposure is already folded into ``cam2ego``.
+    """
+
+    token: str
+    """nuScenes sample token."""
+    scene: str
+    """Scene name."""
+    images: Tensor | None = None
+    """``(N, 3, H, W)`` float32, normalised; None for LiDAR-only pipelines."""
+    intrinsics: Tensor | None = None
+    """``(N, 3, 3)`` float32 pinhole matrices of the original images."""
+    cam2ego: Tensor | None = None
+    """``(N, 4, 4)`` float32 camera -> key-frame ego."""
+    img_aug: Tensor | None = None
+    """``(N, 3, 3)`` float32 original -> augmented pixel map."""
+    lidar2ego: Tensor = field(default_factory=lambda: torch.eye(4))
+    """``(4, 4)`` float32 LiDAR -> ego at the key frame."""
+    ego2global: Tensor = field(default_factory=lambda: torch.eye(4))
+    """``(4, 4)`` float64 key-frame ego -> global."""
+    points: Tensor | None = None
+    """``(P, 5)`` float32 key frame and sweeps in the (augmented) LiDAR frame: x, y, z, intensity, time lag (s)."""
+    bev_aug: Tensor = field(default_factory=lambda: torch.eye(4))
+    """``(4, 4)`` float32 LiDAR frame -> augmented LiDAR frame."""
+    occ_aug: Tensor = field(default_factory=lambda: torch.eye(4))
+    """``(4, 4)`` float32 ego frame -> augmented ego (occupancy) frame."""
+    boxes: Tensor | None = None
+    """``(M, 9)`` float32 boxes in the augmented LiDAR frame: x, y, z (centre), l, w, h, yaw, vx, vy."""
+    box_labels: Tensor | None = None
+    """``(M,)`` int64 indices into ``occkit.classes.DETECTION_CLASSES``."""
+    voxel_semantics: Tensor | None = None
+    """``(X, Y, Z)`` uint8 occupancy labels in the augmented ego frame (255 = ignore)."""
+    mask_camera: Tensor | None = None
+    """``(X, Y, Z)`` bool, voxels observed by the cameras."""
+    mask_lidar: Tensor | None = None
+    """``(X, Y, Z)`` bool, voxels observed by the LiDAR."""
+    depth_maps: Tensor | None = None
+    """``(N, h, w)`` float32 LiDAR depth per feature cell (0 = none), on request."""
+    height_maps: Tensor | None = None
+    """``(N, h, w)`` float32 minimum ego-frame height per feature cell (NaN = none), on request."""
+
+
+@dataclass
+class Batch:
+    """``B`` samples collated; per-sample lists where sizes differ (boxes), padding plus lengths for points."""
+
+    tokens: list[str]
+    scenes: list[str]
+    images: Tensor | None = None
+    """``(B, N, 3, H, W)``."""
+    intrinsics: Tensor | None = None
+    """``(B, N, 3, 3)``."""
+    cam2ego: Tensor | None = None
+    """``(B, N, 4, 4)``."""
+    img_aug: Tensor | None = None
+    """``(B, N, 3, 3)``."""
+    lidar2ego: Tensor | None = None
+    """``(B, 4, 4)``."""
+    ego2global: Tensor | None = None
+    """``(B, 4, 4)`` float64."""
+    points: Tensor | None = None
+    """``(B, P_max, 5)`` zero padded."""
+    num_points: Tensor | None = None
+    """``(B,)`` int64 valid rows of ``points``."""
+    bev_aug: Tensor | None = None
+    """``(B, 4, 4)``."""
+    occ_aug: Tensor | None = None
+    """``(B, 4, 4)``."""
+    boxes: list[Tensor] | None = None
+    """``B`` tensors ``(M_b, 9)``."""
+    box_labels: list[Tensor] | None = None
+    """``B`` tensors ``(M_b,)``."""
+    voxel_semantics: Tensor | None = None
+    """``(B, X, Y, Z)`` uint8."""
+    mask_camera: Tensor | None = None
+    """``(B, X, Y, Z)`` bool."""
+    mask_lidar: Tensor | None = None
+    """``(B, X, Y, Z)`` bool."""
+    depth_maps: Tensor | None = None
+    """``(B, N, h, w)``."""
+    height_maps: Tensor | None = None
+    """``(B, N, h, w)``."""
+
+    def __len__(self) -> int:
+        return len(self.tokens)
+
+    def to(self, device: torch.device | str, non_blocking: bool = False) -> Batch:
+        """A copy with every tensor moved to ``device`` (float64 poses keep their dtype)."""
+        moved = {}
+        for f in fields(self):
+            value = getattr(self, f.name)
+            if isinstance(value, Tensor):
+                value = value.to(device, non_blocking=non_blocking)
+            elif isinstance(value, list) and value and isinstance(value[0], Tensor):
+                value = [v.to(device, non_blocking=non_blocking) for v in value]
+            moved[f.name] = value
+        return Batch(**moved)
+
+
+@dataclass
+class OccPrediction:
+    """What a model predicts for a batch."""
+
+    semantics: Tensor
+    """``(B, X, Y, Z)`` uint8 class ids (17 = free for Occ3D)."""
+    boxes: list[Tensor] | None = None
+    """Optional ``B`` tensors ``(M_b, 9)`` in the LiDAR frame."""
+    box_scores: list[Tensor] | None = None
+    """Optional ``B`` tensors ``(M_b,)``."""
+    box_labels: list[Tensor] | None = None
+    """Optional ``B`` tensors ``(M_b,)`` int64."""
