@@ -1,0 +1,103 @@
+"""Readers of occupancy ground truth: Occ3D ``labels.npz`` and SurroundOcc sparse ``.npy``.
+
+Both validate what they read and name the file and sample in every error, because label files are where
+silent mistakes (a wrong shape, a float mask, a SurroundOcc file read as Occ3D) cost a training run.
+"""
+
+from __future__ import annotations
+
+import zipfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from occkit.classes import IGNORE_INDEX
+from occkit.geometry.grid import OCC3D_GRID, SURROUNDOCC_GRID, VoxelGrid
+
+__all__ = ["LabelError", "OccupancyLabels", "read_occ3d_labels", "read_surroundocc_labels"]
+
+
+class LabelError(ValueError):
+    """A label file is missing, corrupt or has the wrong content; the message names the file and sample."""
+
+
+@dataclass(frozen=True)
+class OccupancyLabels:
+    """Dense labels of one key frame.
+
+    Attributes:
+        semantics: ``(X, Y, Z)`` uint8 class ids (255 = ignore).
+        mask_camera: ``(X, Y, Z)`` bool, or None when the format has no visibility masks.
+        mask_lidar: ``(X, Y, Z)`` bool, or None.
+    """
+
+    semantics: np.ndarray
+    mask_camera: np.ndarray | None = None
+    mask_lidar: np.ndarray | None = None
+
+
+def _where(path: Path, token: str | None) -> str:
+    return f"sample {token}: {path}" if token else str(path)
+
+
+def read_occ3d_labels(path: str | Path, token: str | None = None, grid: VoxelGrid = OCC3D_GRID) -> OccupancyLabels:
+    """Read an Occ3D ``labels.npz`` (``semantics``, ``mask_lidar``, ``mask_camera``: uint8 ``(X, Y, Z)``).
+
+    Masks are returned as bool: the official metric indexes with them, and a uint8 mask would index as integers.
+    """
+    path = Path(path)
+    where = _where(path, token)
+    try:
+        with np.load(path, allow_pickle=False) as archive:
+            arrays = {key: archive[key] for key in archive.files}
+    except FileNotFoundError:
+        raise LabelError(f"{where}: label file not found") from None
+    except (OSError, ValueError, zipfile.BadZipFile, EOFError) as error:
+        raise LabelError(f"{where}: cannot read labels ({error})") from error
+    missing = [key for key in ("semantics", "mask_lidar", "mask_camera") if key not in arrays]
+    if missing:
+        raise LabelError(f"{where}: has no {', '.join(missing)} (keys: {', '.join(arrays) or 'none'})")
+    for key in ("semantics", "mask_lidar", "mask_camera"):
+        array = arrays[key]
+        if array.shape != grid.shape:
+            raise LabelError(f"{where}: {key} has shape {array.shape} but expected {grid.shape}")
+        if array.dtype not in (np.uint8, np.bool_):
+            raise LabelError(f"{where}: {key} has dtype {array.dtype} but expected uint8")
+    semantics = arrays["semantics"].astype(np.uint8, copy=False)
+    bad = (semantics > 17) & (semantics != IGNORE_INDEX)
+    if bad.any():
+        raise LabelError(
+            f"{where}: semantics holds class ids {sorted(np.unique(semantics[bad]).tolist())} beyond 0..17"
+        )
+    return OccupancyLabels(semantics, arrays["mask_camera"].astype(bool), arrays["mask_lidar"].astype(bool))
+
+
+def read_surroundocc_labels(
+    path: str | Path, token: str | None = None, grid: VoxelGrid = SURROUNDOCC_GRID
+) -> OccupancyLabels:
+    """Read SurroundOcc sparse labels: int ``(N, 4)`` rows ``(x, y, z, label)``, labels 1..16, 0 = noise.
+
+    Returns dense ``(X, Y, Z)`` uint8 semantics with unlisted voxels empty (0) and noise voxels ignored (255).
+    """
+    path = Path(path)
+    where = _where(path, token)
+    try:
+        rows = np.load(path, allow_pickle=False)
+    except FileNotFoundError:
+        raise LabelError(f"{where}: label file not found") from None
+    except (OSError, ValueError) as error:
+        raise LabelError(f"{where}: cannot read labels ({error})") from error
+    if rows.ndim != 2 or rows.shape[1] != 4 or not np.issubdtype(rows.dtype, np.integer):
+        raise LabelError(f"{where}: expected integer rows (N, 4) = (x, y, z, label), got {rows.dtype} {rows.shape}")
+    index, labels = rows[:, :3], rows[:, 3]
+    outside = ((index < 0) | (index >= np.array(grid.shape))).any(axis=1)
+    if outside.any():
+        raise LabelError(f"{where}: {int(outside.sum())} rows index outside the {grid.shape} grid")
+    if ((labels < 0) | (labels > 16)).any():
+        raise LabelError(
+            f"{where}: labels must be 0..16, got {np.unique(labels[(labels < 0) | (labels > 16)]).tolist()}"
+        )
+    semantics = np.zeros(grid.shape, dtype=np.uint8)
+    semantics[index[:, 0], index[:, 1], index[:, 2]] = np.where(labels == 0, IGNORE_INDEX, labels).astype(np.uint8)
+    return OccupancyLabels(semantics)
