@@ -204,26 +204,26 @@ def _occupied_neighbourhood(volume: np.ndarray, index: torch.Tensor, reach: int)
 
 
 @pytest.mark.parametrize(
-    ("flip_x", "flip_y", "rotate", "reach"),
-    [(1.0, 0.0, 0.0, 0), (0.0, 1.0, 0.0, 0), (1.0, 1.0, 0.0, 0), (0.0, 0.0, 90.0, 0), (1.0, 0.0, 90.0, 0),
-     (0.5, 0.5, 30.0, 2)],
+    ("flip_x", "flip_y", "rotate"),
+    [(1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (1.0, 1.0, 0.0), (0.0, 0.0, 90.0), (1.0, 0.0, 90.0), (0.5, 0.5, 30.0)],
 )  # fmt: skip
-def test_points_box_and_labels_stay_together(flip_x, flip_y, rotate, reach):
-    # Flips and quarter turns move whole voxels; nearest-neighbour resampling under other angles can drop a voxel of
-    # the thin shell, so there the point only has to land within 2 voxels of the augmented object.
+def test_points_box_and_labels_stay_together(flip_x, flip_y, rotate):
+    # Flips and quarter turns move whole voxels; other angles resample and may thicken the shell by half a voxel.
     rng = np.random.default_rng(7)
     box, points, volume = _box_scene(rng)
     occ_aug = sample_bev_aug(BevAugConfig(flip_x, flip_y, (rotate, rotate)), rng, True)
     bev_aug = lidar_frame_aug(occ_aug, LIDAR2EGO)
     new_points, new_box = augment_points(points, bev_aug), augment_boxes(box, bev_aug)[0]
-    new_volume = augment_occupancy(volume, occ_aug, OCC3D_GRID, fill=255)
+    new_volume = augment_occupancy(volume, occ_aug, OCC3D_GRID, fill=255, empty=17)
     new_mask = augment_occupancy(volume == 4, occ_aug, OCC3D_GRID, fill=0)
     assert _inside_box(new_points, new_box).all()
     index, inside = OCC3D_GRID.world_to_index(transform_points(LIDAR2EGO, new_points))
     assert inside.all()
-    assert _occupied_neighbourhood(new_volume, index, reach).all()
+    # Resampling samples each voxel at 8 points, so a point grazing a voxel's corner may land one voxel off.
+    assert _occupied_neighbourhood(new_volume, index, 0 if rotate % 90 == 0 else 1).all()
     np.testing.assert_array_equal(new_mask, new_volume == 4)
-    assert (new_volume == 4).sum() == pytest.approx((volume == 4).sum(), rel=0.1 * reach)
+    before, after = (volume == 4).sum(), (new_volume == 4).sum()
+    assert after == before if rotate % 90 == 0 else before <= after <= 1.7 * before
 
 
 def test_scaled_boxes_keep_their_points():
@@ -272,15 +272,23 @@ def test_occupancy_flips_and_resampling_keep_type_and_fill_the_outside():
     assert isinstance(as_tensor, torch.Tensor) and torch.equal(as_tensor, torch.from_numpy(flipped))
     identity = augment_occupancy(volume, torch.eye(4, dtype=F64), grid, fill=255)
     np.testing.assert_array_equal(identity, volume)
-    rotate_shift = make_transform(_yaw(45.0), torch.tensor([0.3, -0.5, 0.0], dtype=F64))
-    rotated = augment_occupancy(volume, rotate_shift, grid, fill=255)
+    rotate_shift = make_transform(_yaw(37.0), torch.tensor([0.31, -0.47, 0.0], dtype=F64))  # off voxel faces
+    labels = np.random.default_rng(3).choice(np.array([17, 3, 5], dtype=np.uint8), size=grid.shape, p=[0.8, 0.1, 0.1])
+    as_mask = augment_occupancy(volume, rotate_shift, grid, fill=0)
+    as_labels = augment_occupancy(labels, rotate_shift, grid, fill=255, empty=17)
     inverse = np.linalg.inv(rotate_shift.numpy())
+    octants = np.array([[dx, dy, dz] for dx in (-1, 1) for dy in (-1, 1) for dz in (-1, 1)]) * 0.1
     for index in np.ndindex(grid.shape):
         centre = np.array(grid.lower) + (np.array(index) + 0.5) * 0.4
-        source = np.floor((inverse[:3, :3] @ centre + inverse[:3, 3] - grid.lower) / 0.4).astype(int)
-        inside = (source >= 0).all() and (source < grid.shape).all()
-        assert rotated[index] == (volume[tuple(source)] if inside else 255)
-    assert (rotated == 255).sum() > 10
+        points = centre + octants
+        source = np.floor((points @ inverse[:3, :3].T + inverse[:3, 3] - grid.lower) / 0.4).astype(int)
+        inside = (source >= 0).all(axis=1) & (source < grid.shape).all(axis=1)
+        mask_values = [volume[tuple(src)] if ok else 0 for src, ok in zip(source, inside, strict=True)]
+        label_values = [labels[tuple(src)] if ok else 255 for src, ok in zip(source, inside, strict=True)]
+        assert as_mask[index] == max(mask_values)  # a mask keeps any sub-point's value (largest)
+        occupied = [v for v in label_values if v != 17]
+        assert as_labels[index] == (occupied[0] if occupied else label_values[0])  # labels keep the first non-free
+    assert (as_labels == 255).sum() > 10 and (as_mask == 0).sum() > 10
     with pytest.raises(ValueError, match="shape"):
         augment_occupancy(volume[:-1], flip_xy, grid, fill=255)
 
