@@ -100,6 +100,56 @@ def _run_sim(args: argparse.Namespace) -> int:
     return 0
 
 
+# ----------------------------------------------------------------------------------------------------- index
+def _add_index(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--root", type=Path, required=True, help="dataset root (holds <version>/, samples/, gts/)")
+    parser.add_argument("--version", required=True, help="table folder, e.g. v1.0-trainval, v1.0-mini, v1.0-synth")
+    parser.add_argument("--out", type=Path, required=True, help="index JSON file to write")
+    parser.add_argument("--max-sweeps", type=int, default=10, help="earlier LiDAR sweeps per key frame (default 10)")
+    parser.add_argument(
+        "--split",
+        default="all",
+        help="scenes to index: all (default), or a split name (train, val, test; mini_train, mini_val), taken "
+        "from <root>/splits.json if present, else the official nuScenes lists, or from --split-file",
+    )
+    parser.add_argument(
+        "--split-file", type=Path, metavar="FILE", help="custom split: a JSON list of scene names or {name: [...]}"
+    )
+
+
+def _run_index(args: argparse.Namespace) -> int:
+    from tqdm import tqdm
+
+    from occkit.data.index import build_index, save_index
+    from occkit.data.splits import read_split_file, split_scenes
+
+    if args.split_file is not None:
+        scenes = read_split_file(args.split_file, None if args.split == "all" else args.split)
+    else:
+        scenes = None if args.split == "all" else split_scenes(args.root, args.version, args.split)
+    bar = None
+
+    def progress(done: int, total: int) -> None:
+        nonlocal bar
+        if bar is None:  # the total is known once the tables are read
+            bar = tqdm(total=total, unit="frame", desc="index")
+        bar.update(done - bar.n)
+
+    try:
+        records = build_index(args.root, args.version, max_sweeps=args.max_sweeps, scenes=scenes, progress=progress)
+    finally:
+        if bar is not None:
+            bar.close()
+    meta = {"version": args.version, "root": str(args.root), "max_sweeps": args.max_sweeps, "split": args.split}
+    save_index(records, args.out, meta)
+    labelled = sum(record.occ_path is not None for record in records)
+    print(
+        f"indexed {len(records)} key frames of {len({r.scene for r in records})} scene(s) ({args.split}), "
+        f"{sum(r.num_boxes for r in records)} boxes, {labelled} with Occ3D labels -> {args.out}"
+    )
+    return 0
+
+
 # ----------------------------------------------------------------------------------------------------- helpers
 def _write_json(path: Path, payload: dict) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -116,6 +166,7 @@ COMMANDS: dict[str, Command] = {
         _run_info,
     ),
     "sim": ("simulate a synthetic driving dataset in the nuScenes + Occ3D layout", _add_sim, _run_sim),
+    "index": ("index the key frames of a nuScenes-layout dataset as JSON", _add_index, _run_index),
 }
 
 

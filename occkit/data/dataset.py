@@ -1,0 +1,266 @@
+"""The occupancy dataset: index records -> typed :class:`~occkit.types.Sample` with every transform as a matrix.
+
+Works on any nuScenes + Occ3D layout (the real datasets and occkit's synthetic world). The index is built from the
+nuScenes tables on first use and cached as JSON beside the tables (or in ``~/.cache/occkit`` when the dataset is
+read-only), so there is no separate data-preparation step.
+
+Augmentation draws are seeded by ``(seed, epoch, index)``: a run is reproducible whatever the number of workers.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+import torch
+from PIL import Image, UnidentifiedImageError
+from torch import Tensor
+
+from occkit.classes import DETECTION_CLASSES
+from occkit.data.index import FrameRecord, build_index, load_index, save_index
+from occkit.data.labels import LabelError, read_occ3d_labels
+from occkit.data.lidar_maps import depth_map, height_map
+from occkit.data.splits import split_scenes
+from occkit.data.transforms import (
+    BevAugConfig,
+    ImageAugConfig,
+    augment_boxes,
+    augment_image,
+    augment_occupancy,
+    augment_points,
+    lidar_frame_aug,
+    sample_bev_aug,
+    sample_image_aug,
+    sanitize_points,
+)
+from occkit.geometry.grid import OCC3D_GRID
+from occkit.types import Sample
+
+__all__ = ["DatasetConfig", "OccupancyDataset", "SampleError"]
+
+log = logging.getLogger(__name__)
+
+#: Camera order of BEVDet / FlashOcc / DAOcc configs.
+CAMERAS = ("CAM_FRONT_LEFT", "CAM_FRONT", "CAM_FRONT_RIGHT", "CAM_BACK_LEFT", "CAM_BACK", "CAM_BACK_RIGHT")
+_IMAGENET_MEAN = (123.675, 116.28, 103.53)
+_IMAGENET_STD = (58.395, 57.12, 57.375)
+
+
+class SampleError(RuntimeError):
+    """A sample cannot be loaded; the message names the sample token and the file."""
+
+
+@dataclass(frozen=True)
+class DatasetConfig:
+    """Where the data is and what a sample holds."""
+
+    root: str = "data/synth"
+    """Dataset root (the folder holding the version folder, samples/, sweeps/ and gts/)."""
+    version: str = "v1.0-synth"
+    """Table folder: v1.0-trainval, v1.0-mini, v1.0-test, or a synthetic version."""
+    split: str = "train"
+    """Scene split: train, val, test, mini_train, mini_val, all, or a path to a JSON list of scene names."""
+    index: str | None = None
+    """Prebuilt index file (``occkit index``); None builds and caches one on first use."""
+    cameras: tuple[str, ...] = CAMERAS
+    """Cameras to load, in this order; empty for LiDAR-only models."""
+    sweeps: int = 9
+    """Previous LiDAR sweeps added to the key frame (DAOcc: 9, i.e. 10 sweeps); -1 for no LiDAR at all."""
+    occupancy: bool = True
+    """Load the Occ3D labels and masks."""
+    boxes: bool = True
+    """Load the 3D boxes of the detection classes."""
+    augment: bool = False
+    """Random image and BEV augmentation (training); off gives the deterministic test transform."""
+    image_aug: ImageAugConfig = field(default_factory=ImageAugConfig)
+    """Image resize / crop / flip / rotation."""
+    bev_aug: BevAugConfig = field(default_factory=BevAugConfig)
+    """BEV flips (and optional rotation / scale) of points, boxes and labels."""
+    depth_downsample: int = 0
+    """Return LiDAR depth and height maps at this feature stride (e.g. 16); 0 for none."""
+    on_error: Literal["raise", "skip"] = "raise"
+    """A broken sample raises, or is skipped (returned as None, logged and counted)."""
+    seed: int = 0
+    """Seed of the augmentation draws."""
+
+
+def _read_points(path: Path, token: str) -> np.ndarray:
+    try:
+        raw = np.fromfile(path, dtype=np.float32)
+    except OSError as error:
+        raise SampleError(f"sample {token}: cannot read points {path}: {error.strerror or error}") from error
+    if raw.size % 5:
+        raise SampleError(f"sample {token}: {path} holds {raw.size} floats, not a multiple of 5 (x, y, z, i, ring)")
+    return raw.reshape(-1, 5)
+
+
+def _read_image(path: Path, token: str) -> Image.Image:
+    try:
+        with Image.open(path) as image:
+            return image.convert("RGB")
+    except FileNotFoundError:
+        raise SampleError(f"sample {token}: image not found: {path}") from None
+    except (OSError, UnidentifiedImageError) as error:
+        raise SampleError(f"sample {token}: cannot read image {path}: {error}") from error
+
+
+def _matrix(values, dtype=torch.float32) -> Tensor:
+    return torch.tensor(np.asarray(values, dtype=np.float64), dtype=dtype)
+
+
+class OccupancyDataset(torch.utils.data.Dataset):
+    """Key frames of one split as :class:`Sample`; see :class:`DatasetConfig`."""
+
+    def __init__(self, config: DatasetConfig) -> None:
+        self.config = config
+        self.root = Path(config.root)
+        records = self._load_records()
+        if config.split != "all":
+            scenes = set(split_scenes(self.root, config.version, config.split))
+            records = [r for r in records if r.scene in scenes]
+        if not records:
+            raise ValueError(f"{self.root}: split {config.split!r} of {config.version} has no key frames")
+        missing = [c for c in config.cameras if c not in records[0].cameras]
+        if missing:
+            raise ValueError(f"{self.root}: cameras {missing} not in the data; it has {sorted(records[0].cameras)}")
+        self.records = records
+        self.epoch = 0
+        self.skipped = 0
+
+    def _load_records(self) -> list[FrameRecord]:
+        if self.config.index is not None:
+            return load_index(self.config.index)[0]
+        max_sweeps = max(self.config.sweeps, 0)
+        name = f"occkit-index-{self.config.version}-{max_sweeps}.json"
+        for cache in (self.root / ".occkit" / name, Path.home() / ".cache" / "occkit" / _slug(self.root) / name):
+            if cache.is_file() and cache.stat().st_mtime >= _tables_mtime(self.root / self.config.version):
+                return load_index(cache)[0]
+        records = build_index(self.root, self.config.version, max_sweeps=max_sweeps)
+        for cache in (self.root / ".occkit" / name, Path.home() / ".cache" / "occkit" / _slug(self.root) / name):
+            try:
+                save_index(
+                    records, cache, {"version": self.config.version, "root": str(self.root), "max_sweeps": max_sweeps}
+                )
+                break
+            except OSError:
+                continue
+        return records
+
+    def set_epoch(self, epoch: int) -> None:
+        """Change the augmentation draws (call once per epoch, as with a DistributedSampler)."""
+        self.epoch = epoch
+
+    def __len__(self) -> int:
+        return len(self.records)
+
+    def __getitem__(self, index: int) -> Sample | None:
+        record = self.records[index]
+        try:
+            return self._load(record, np.random.default_rng([self.config.seed, self.epoch, index]))
+        except (SampleError, LabelError) as error:
+            if self.config.on_error == "raise":
+                raise
+            self.skipped += 1
+            log.warning("skipping %s (%d skipped so far)", error, self.skipped)
+            return None
+
+    # ---------------------------------------------------------------------------------------------------- loading
+    def _load(self, record: FrameRecord, rng: np.random.Generator) -> Sample:
+        config = self.config
+        lidar2ego = _matrix(record.lidar2ego)
+        occ_aug = sample_bev_aug(config.bev_aug, rng, config.augment)
+        bev_aug = lidar_frame_aug(occ_aug, lidar2ego.double())
+        sample = Sample(
+            token=record.token,
+            scene=record.scene,
+            lidar2ego=lidar2ego,
+            ego2global=_matrix(record.ego2global, torch.float64),
+            bev_aug=bev_aug.float(),
+            occ_aug=occ_aug.float(),
+        )
+        if config.cameras:
+            self._load_cameras(record, sample, rng)
+        key_points = None
+        if config.sweeps >= 0:
+            key_points = self._load_points(record, sample)
+        if config.boxes:
+            self._load_boxes(record, sample)
+        if config.occupancy:
+            self._load_occupancy(record, sample, occ_aug)
+        if config.depth_downsample and config.cameras and key_points is not None:
+            ego_points = key_points[:, :3] @ lidar2ego[:3, :3].T + lidar2ego[:3, 3]
+            size = sample.images.shape[-2:]
+            args = (ego_points, sample.cam2ego, sample.intrinsics, sample.img_aug, tuple(size), config.depth_downsample)
+            sample.depth_maps = depth_map(*args)
+            sample.height_maps = height_map(*args)
+        return sample
+
+    def _load_cameras(self, record: FrameRecord, sample: Sample, rng: np.random.Generator) -> None:
+        mean = torch.tensor(_IMAGENET_MEAN).view(3, 1, 1)
+        std = torch.tensor(_IMAGENET_STD).view(3, 1, 1)
+        images, intrinsics, cam2ego, img_aug = [], [], [], []
+        for name in self.config.cameras:
+            camera = record.cameras[name]
+            image = _read_image(self.root / camera.path, record.token)
+            params = sample_image_aug(self.config.image_aug, image.size, self.config.augment, rng)
+            pixels = torch.from_numpy(np.array(augment_image(image, params))).permute(2, 0, 1).float()  # (3, H, W)
+            images.append((pixels - mean) / std)
+            intrinsics.append(_matrix(camera.intrinsics))
+            cam2ego.append(_matrix(camera.cam2keyego))
+            img_aug.append(params.matrix())
+        sample.images = torch.stack(images)
+        sample.intrinsics = torch.stack(intrinsics)
+        sample.cam2ego = torch.stack(cam2ego)
+        sample.img_aug = torch.stack(img_aug)
+
+    def _load_points(self, record: FrameRecord, sample: Sample) -> Tensor:
+        """Key frame plus sweeps in the key LiDAR frame, ``(x, y, z, intensity, time lag)``; returns the key points."""
+        path = self.root / record.lidar_path
+        key = torch.from_numpy(_read_points(path, record.token).copy())
+        key = sanitize_points(key, str(path))
+        key[:, 4] = 0.0  # the ring column becomes the time lag
+        clouds = [key]
+        for sweep in record.sweeps[: self.config.sweeps]:
+            sweep_path = self.root / sweep.path
+            points = sanitize_points(torch.from_numpy(_read_points(sweep_path, record.token).copy()), str(sweep_path))
+            transform = _matrix(sweep.sweep2lidar)
+            points[:, :3] = points[:, :3] @ transform[:3, :3].T + transform[:3, 3]
+            points[:, 4] = sweep.time_lag
+            clouds.append(points)
+        sample.points = augment_points(torch.cat(clouds), sample.bev_aug)
+        return key
+
+    def _load_boxes(self, record: FrameRecord, sample: Sample) -> None:
+        keep = [i for i, name in enumerate(record.box_detection_names) if name is not None]
+        boxes = torch.from_numpy(np.asarray(record.boxes_lidar, dtype=np.float32)[keep].reshape(-1, 9))
+        sample.boxes = augment_boxes(boxes, sample.bev_aug)
+        sample.box_labels = torch.tensor(
+            [DETECTION_CLASSES.index(record.box_detection_names[i]) for i in keep], dtype=torch.int64
+        )
+
+    def _load_occupancy(self, record: FrameRecord, sample: Sample, occ_aug: Tensor) -> None:
+        if record.occ_path is None:
+            raise SampleError(f"sample {record.token}: no Occ3D labels under {self.root / 'gts' / record.scene}")
+        labels = read_occ3d_labels(self.root / record.occ_path, record.token)
+        sample.voxel_semantics = torch.from_numpy(
+            augment_occupancy(labels.semantics, occ_aug, OCC3D_GRID, 255, empty=17)
+        )
+        sample.mask_camera = torch.from_numpy(augment_occupancy(labels.mask_camera, occ_aug, OCC3D_GRID, False))
+        sample.mask_lidar = torch.from_numpy(augment_occupancy(labels.mask_lidar, occ_aug, OCC3D_GRID, False))
+
+
+def _slug(path: Path) -> str:
+    return str(path.resolve()).strip(os.sep).replace(os.sep, "_")
+
+
+def _tables_mtime(folder: Path) -> float:
+    try:
+        return max(p.stat().st_mtime for p in folder.glob("*.json"))
+    except ValueError:
+        warnings.warn(f"{folder}: no nuScenes tables found", stacklevel=3)
+        return 0.0

@@ -1,0 +1,496 @@
+"""nuScenes tables -> key-frame index: geometry against the simulator's truth, JSON files, splits, bad input, CLI."""
+
+from __future__ import annotations
+
+import contextlib
+import copy
+import json
+import shutil
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from occkit.classes import NUSCENES_TO_DETECTION
+from occkit.cli import main
+from occkit.data.index import (
+    INDEX_FORMAT,
+    FrameRecord,
+    IndexFormatError,
+    build_index,
+    index_tables,
+    load_index,
+    save_index,
+)
+from occkit.data.splits import read_split_file, scene_split, split_scenes
+from occkit.data.tables import TABLE_NAMES, TableError, load_tables
+from occkit.geometry.grid import OCC3D_GRID
+from occkit.sim.generate import SimConfig, simulate_dataset
+from occkit.sim.rig import pose_matrix
+
+VERSION = "v1.0-synth"
+TINY = SimConfig(scenes=2, frames=3, image_size=(176, 64), cameras=("CAM_FRONT", "CAM_BACK"))
+
+
+@pytest.fixture(scope="module")
+def root(tmp_path_factory) -> Path:
+    root = tmp_path_factory.mktemp("index") / "data"
+    simulate_dataset(TINY, root)
+    return root
+
+
+@pytest.fixture(scope="module")
+def records(root) -> list[FrameRecord]:
+    return build_index(root, VERSION)
+
+
+@pytest.fixture(scope="module")
+def truth(root) -> dict[str, dict]:
+    """The simulator's Occ3D-style infos (poses, cameras, label paths) by sample token."""
+    infos = json.loads((root / "annotations.json").read_text())["scene_infos"]
+    return {token: info for scene in infos.values() for token, info in scene.items()}
+
+
+@pytest.fixture()
+def tables_copy(root, tmp_path) -> Path:
+    """A dataset root holding only a copy of the tables, to corrupt."""
+    shutil.copytree(root / VERSION, tmp_path / VERSION)
+    return tmp_path
+
+
+def _points(root: Path, path: str) -> np.ndarray:
+    return np.fromfile(root / path, dtype=np.float32).reshape(-1, 5)[:, :3].astype(np.float64)
+
+
+def _apply(transform: np.ndarray, points: np.ndarray) -> np.ndarray:
+    return points @ transform[:3, :3].T + transform[:3, 3]
+
+
+def _share_in_occupied(points_ego: np.ndarray, occupied: np.ndarray) -> float:
+    """Share of in-grid points in an occupied voxel; a point on a voxel face counts for both voxels."""
+    offsets = np.array([[0, 0, 0], [-1, 0, 0], [0, -1, 0], [0, 0, -1], [1, 0, 0], [0, 1, 0], [0, 0, 1]]) * 0.01
+    # One call for all offsets: many small torch calls crawl when other processes keep the cores busy.
+    shifted = torch.from_numpy((points_ego[None] + offsets[:, None]).reshape(-1, 3))
+    index, inside = OCC3D_GRID.world_to_index(shifted)
+    index, inside = index.numpy().clip(0, np.array(OCC3D_GRID.shape) - 1), inside.numpy()
+    hit = (inside & occupied[index[:, 0], index[:, 1], index[:, 2]]).reshape(len(offsets), -1)
+    inside_any = inside.reshape(len(offsets), -1).any(axis=0)
+    return float(hit.any(axis=0)[inside_any].mean())
+
+
+# ----------------------------------------------------------------------------------------------------- structure
+def test_records_in_scene_then_time_order(records):
+    assert [(r.scene, r.index_in_scene) for r in records] == [(f"scene-000{s}", k) for s in (1, 2) for k in range(3)]
+    for previous, current in zip(records, records[1:], strict=False):
+        if previous.scene == current.scene:
+            assert previous.next == current.token and current.prev == previous.token
+            assert previous.timestamp < current.timestamp
+    assert records[0].prev == "" and records[2].next == ""
+    for record in records:
+        assert list(record.cameras) == ["CAM_FRONT", "CAM_BACK"]
+        assert record.lidar_path.startswith("samples/LIDAR_TOP/")
+        assert record.occ_path == f"gts/{record.scene}/{record.token}/labels.npz"
+        assert record.num_boxes > 0 and record.boxes_ego.shape == record.boxes_lidar.shape == (record.num_boxes, 9)
+
+
+def test_sweeps_newest_first_within_the_scene(root, records):
+    for record in records:
+        # The simulator has no sweeps before a scene's first key frame, and 9 between key frames.
+        assert len(record.sweeps) == (0 if record.index_in_scene == 0 else 10)
+        lags = [sweep.time_lag for sweep in record.sweeps]
+        assert lags == sorted(lags) and all(lag > 0 for lag in lags)
+        for sweep in record.sweeps:
+            assert sweep.time_lag == pytest.approx((record.timestamp - sweep.timestamp) / 1e6)
+            assert (root / sweep.path).is_file()
+    fewer = build_index(root, VERSION, max_sweeps=3)
+    assert [len(r.sweeps) for r in fewer] == [0, 3, 3, 0, 3, 3]
+    assert fewer[1].sweeps == records[1].sweeps[:3]
+
+
+def test_sweep_chain_stops_at_the_scene_boundary(root):
+    tables = load_tables(root, VERSION)
+    lidar = [sd for sd in tables["sample_data"] if "LIDAR_TOP" in sd["filename"]]
+    by_scene = defaultdict(list)
+    for sd in lidar:
+        by_scene[tables.get("sample", sd["sample_token"])["scene_token"]].append(sd)
+    first, second = (sorted(rows, key=lambda sd: sd["timestamp"]) for rows in by_scene.values())
+    # Chain scene 2's first sweep to scene 1's last one, as one continuous log would.
+    second[0]["prev"], first[-1]["next"] = first[-1]["token"], second[0]["token"]
+    records = index_tables(tables, max_sweeps=10)
+    assert [len(r.sweeps) for r in records if r.scene == "scene-0002"] == [0, 10, 10]
+
+
+# ----------------------------------------------------------------------------------------------------- geometry
+def test_poses_and_cameras_match_the_simulator(records, truth):
+    for record in records:
+        info = truth[record.token]
+        assert record.timestamp == info["timestamp"] and record.occ_path == info["gt_path"]
+        ego = info["ego_pose"]
+        np.testing.assert_allclose(record.ego2global, pose_matrix(ego["translation"], ego["rotation"]), atol=1e-12)
+        for channel, camera in record.cameras.items():
+            expected = info["camera_sensor"][channel]
+            assert camera.path == expected["img_path"] and (camera.width, camera.height) == TINY.image_size
+            np.testing.assert_allclose(camera.intrinsics, expected["intrinsics"])
+            extrinsic, pose = expected["extrinsic"], expected["ego_pose"]
+            np.testing.assert_allclose(camera.cam2ego, pose_matrix(extrinsic["translation"], extrinsic["rotation"]))
+            np.testing.assert_allclose(camera.ego2global, pose_matrix(pose["translation"], pose["rotation"]))
+            np.testing.assert_allclose(
+                camera.cam2keyego,
+                np.linalg.inv(record.ego2global) @ camera.ego2global @ camera.cam2ego,
+                atol=1e-9,
+            )
+            assert camera.timestamp >= record.timestamp  # cameras fire as the LiDAR sweeps past them
+
+
+def test_key_sweep_points_land_in_occupied_voxels(root, records):
+    for record in records:
+        occupied = np.load(root / record.occ_path)["semantics"] != 17
+        points = _apply(record.lidar2ego, _points(root, record.lidar_path))
+        assert _share_in_occupied(points, occupied) >= 0.95
+
+
+def test_sweeps_map_static_structure_onto_the_key_frame(root, records):
+    for record in records:
+        occupied = np.load(root / record.occ_path)["semantics"] != 17
+        for sweep in record.sweeps[::3]:
+            points = _points(root, sweep.path)
+            mapped = _apply(record.lidar2ego @ sweep.sweep2lidar, points)
+            unmoved = _apply(record.lidar2ego, points)  # as if the ego had stood still
+            above_ground = mapped[:, 2] > 0.5  # the ground is occupied wherever a point lands
+            share = _share_in_occupied(mapped[above_ground], occupied)
+            assert share >= 0.9
+            if sweep.time_lag >= 0.3:
+                assert share - _share_in_occupied(unmoved[unmoved[:, 2] > 0.5], occupied) >= 0.1
+
+
+def test_sweep2lidar_maps_a_global_point_consistently(root, records):
+    tables = load_tables(root, VERSION)
+    by_file = {sd["filename"]: sd for sd in tables["sample_data"]}
+
+    def lidar2global(filename: str) -> np.ndarray:
+        sd = by_file[filename]
+        pose = tables.get("ego_pose", sd["ego_pose_token"])
+        calibration = tables.get("calibrated_sensor", sd["calibrated_sensor_token"])
+        return pose_matrix(pose["translation"], pose["rotation"]) @ pose_matrix(
+            calibration["translation"], calibration["rotation"]
+        )
+
+    point = np.array([[10.0, -4.0, 1.5]])  # a static point in global coordinates, near the ego's path
+    for record in records[1:3]:
+        key = _apply(np.linalg.inv(lidar2global(record.lidar_path)), point + record.ego2global[:3, 3])
+        for sweep in record.sweeps:
+            in_sweep = _apply(np.linalg.inv(lidar2global(sweep.path)), point + record.ego2global[:3, 3])
+            np.testing.assert_allclose(_apply(sweep.sweep2lidar, in_sweep), key, atol=1e-9)
+
+
+def test_boxes_lidar_are_boxes_ego_in_the_lidar_frame(records):
+    for record in records:
+        ego, lidar = record.boxes_ego, record.boxes_lidar
+        np.testing.assert_allclose(_apply(np.linalg.inv(record.lidar2ego), ego[:, :3]), lidar[:, :3], atol=1e-9)
+        np.testing.assert_allclose(ego[:, 3:6], lidar[:, 3:6])
+        lidar_yaw = np.arctan2(record.lidar2ego[1, 0], record.lidar2ego[0, 0])
+        np.testing.assert_allclose(np.cos(ego[:, 6] - lidar[:, 6]), np.cos(lidar_yaw), atol=1e-9)
+        rotation = record.lidar2ego[:2, :2]
+        np.testing.assert_allclose(lidar[:, 7:9] @ rotation.T, ego[:, 7:9], atol=1e-9)
+
+
+def test_box_velocities_are_finite_differences_of_centres(records):
+    """Centred differences of global centres where an instance has annotations on both sides, one-sided at the
+    ends, as nuscenes-devkit's box_velocity."""
+    seen: dict[str, list[tuple[int, np.ndarray]]] = defaultdict(list)
+    for record in records:
+        centres = _apply(record.ego2global, record.boxes_ego[:, :3])
+        for instance, centre in zip(record.box_instances, centres, strict=True):
+            seen[instance].append((record.timestamp, centre))
+    checked = 0
+    for record in records:
+        for i, instance in enumerate(record.box_instances):
+            track = seen[instance]
+            k = [t for t, _ in track].index(record.timestamp)
+            first, last = track[max(k - 1, 0)], track[min(k + 1, len(track) - 1)]
+            if first is last:
+                assert not record.velocity_valid[i] and (record.boxes_ego[i, 7:9] == 0).all()
+                continue
+            velocity = (last[1] - first[1]) / ((last[0] - first[0]) / 1e6)
+            expected = (np.linalg.inv(record.ego2global[:3, :3]) @ velocity)[:2]
+            assert record.velocity_valid[i]
+            np.testing.assert_allclose(record.boxes_ego[i, 7:9], expected, atol=1e-6)
+            checked += 1
+    assert checked > 100
+
+
+def test_box_labels_follow_the_annotations(root, records):
+    tables = load_tables(root, VERSION)
+    for record in records:
+        annotations = [a for a in tables["sample_annotation"] if a["sample_token"] == record.token]
+        assert list(record.box_instances) == [a["instance_token"] for a in annotations]
+        assert record.box_num_lidar_pts.tolist() == [a["num_lidar_pts"] for a in annotations]
+        assert list(record.box_visibility) == [a["visibility_token"] for a in annotations]
+        for category, name in zip(record.box_categories, record.box_detection_names, strict=True):
+            assert name == NUSCENES_TO_DETECTION.get(category)
+    assert {n for r in records for n in r.box_detection_names} >= {"car", "pedestrian", None}
+
+
+# ----------------------------------------------------------------------------------------------------- files
+def test_json_round_trip(records, tmp_path):
+    path = save_index(records, tmp_path / "sub" / "index.json", {"version": VERSION, "root": "x", "max_sweeps": 10})
+    loaded, meta = load_index(path)
+    assert loaded == records
+    assert meta == {
+        "format": INDEX_FORMAT,
+        "created_by": meta["created_by"],
+        "version": VERSION,
+        "root": "x",
+        "max_sweeps": 10,
+        "frames": len(records),
+    }
+    assert meta["created_by"].startswith("occkit ")
+    assert json.loads(path.read_text())["records"][0] == records[0].to_dict()
+    assert not (tmp_path / "sub" / ".index.json.partial").exists()
+    record = records[1]
+    assert FrameRecord.from_dict(json.loads(json.dumps(record.to_dict()))) == record
+    assert record != records[2]
+    with pytest.raises(ValueError, match="read-only"):
+        record.boxes_ego[0, 0] = 1.0
+
+
+def test_save_index_needs_the_build_meta(records, tmp_path):
+    with pytest.raises(ValueError, match="max_sweeps"):
+        save_index(records, tmp_path / "index.json", {"version": VERSION, "root": "x"})
+
+
+def test_load_index_names_the_file_on_bad_input(records, tmp_path):
+    path = tmp_path / "index.json"
+    path.write_text(json.dumps({"format": "mmdet3d-infos", "records": []}))
+    with pytest.raises(IndexFormatError, match=r"index\.json: not an occkit index \(format 'mmdet3d-infos'"):
+        load_index(path)
+    path.write_text("{not json")
+    with pytest.raises(IndexFormatError, match=r"index\.json: not valid JSON"):
+        load_index(path)
+    broken = records[0].to_dict()
+    broken["lidar2ego"][2] = [0.0, "1", 0.0, 0.0]
+    path.write_text(json.dumps({"format": INDEX_FORMAT, "records": [records[1].to_dict(), broken]}))
+    with pytest.raises(IndexFormatError, match=r"index\.json: record 1\.lidar2ego\[2\]: expected a list of 4"):
+        load_index(path)
+    with pytest.raises(FileNotFoundError, match="missing.json"):
+        load_index(tmp_path / "missing.json")
+
+
+# ----------------------------------------------------------------------------------------------------- fuzz
+def _leaves(value, path=()):
+    """Every path into a to_dict() tree, with the kind of value there."""
+    if isinstance(value, dict):
+        for key, item in value.items():
+            yield from _leaves(item, (*path, key))
+    elif isinstance(value, list):
+        yield path, "list"
+        for i, item in enumerate(value[:2]):
+            yield from _leaves(item, (*path, i))
+    else:
+        yield path, type(value).__name__
+
+
+_WRONG = {
+    "str": st.one_of(st.integers(), st.floats(), st.booleans(), st.lists(st.text(), max_size=2)),
+    "int": st.one_of(st.floats(), st.text(max_size=3), st.booleans(), st.none(), st.lists(st.integers(), max_size=2)),
+    "float": st.one_of(
+        st.text(max_size=3), st.booleans(), st.none(), st.just(float("nan")), st.just(float("inf")), st.just([1.0])
+    ),
+    "bool": st.one_of(st.integers(), st.text(max_size=3), st.none(), st.floats()),
+    "list": st.one_of(st.text(max_size=3), st.integers(), st.none(), st.dictionaries(st.text(max_size=2), st.none())),
+    "NoneType": st.one_of(st.integers(), st.booleans(), st.lists(st.none(), max_size=2)),
+}
+_JSON = st.recursive(
+    st.none() | st.booleans() | st.integers() | st.floats() | st.text(max_size=4),
+    lambda children: st.lists(children, max_size=3) | st.dictionaries(st.text(max_size=4), children, max_size=3),
+    max_leaves=8,
+)
+
+
+@settings(max_examples=300, deadline=None)
+@given(data=st.data())
+def test_from_dict_rejects_wrong_types_naming_the_field(records, data):
+    valid = records[1].to_dict()
+    leaves = [(path, kind) for path, kind in _leaves(valid) if path]
+    path, kind = data.draw(st.sampled_from(leaves))
+    if path[0] == "box_detection_names" and len(path) == 2:
+        kind = "NoneType" if valid["box_detection_names"][path[1]] is None else "detection"
+    wrong = data.draw(
+        _WRONG.get(kind, st.one_of(st.integers(), st.booleans(), st.lists(st.integers(), max_size=1))), label="wrong"
+    )
+    broken = copy.deepcopy(valid)
+    target = broken
+    for key in path[:-1]:
+        target = target[key]
+    target[path[-1]] = wrong
+    with pytest.raises(IndexFormatError) as error:
+        FrameRecord.from_dict(broken, "index.json: record 7")
+    message = str(error.value)
+    assert message.startswith("index.json: record 7")
+    assert str(next(key for key in reversed(path) if isinstance(key, str))) in message
+
+
+@settings(max_examples=200, deadline=None)
+@given(value=_JSON, key=st.sampled_from(["token", "sweeps", "cameras", "boxes_ego", "velocity_valid", "occ_path"]))
+def test_from_dict_gives_index_errors_only(records, value, key):
+    broken = records[1].to_dict()
+    broken[key] = value
+    with contextlib.suppress(IndexFormatError):
+        FrameRecord.from_dict(broken)
+    with pytest.raises(IndexFormatError):
+        FrameRecord.from_dict(value)
+
+
+def test_from_dict_missing_and_unknown_keys(records):
+    data = records[0].to_dict()
+    del data["sweeps"]
+    with pytest.raises(IndexFormatError, match="record: missing sweeps"):
+        FrameRecord.from_dict(data)
+    data = records[0].to_dict() | {"extra": 1}
+    with pytest.raises(IndexFormatError, match="unknown key.*extra"):
+        FrameRecord.from_dict(data)
+    data = records[0].to_dict()
+    data["box_instances"] = data["box_instances"][:-1]
+    with pytest.raises(IndexFormatError, match="one length"):
+        FrameRecord.from_dict(data)
+
+
+# ----------------------------------------------------------------------------------------------------- table errors
+def _edit(folder: Path, table: str, edit) -> None:
+    path = folder / VERSION / f"{table}.json"
+    rows = json.loads(path.read_text())
+    edit(rows)
+    path.write_text(json.dumps(rows))
+
+
+def test_missing_folders_and_tables(tables_copy):
+    with pytest.raises(FileNotFoundError, match="v1.0-mini does not exist; version folders found: v1.0-synth"):
+        load_tables(tables_copy, "v1.0-mini")
+    with pytest.raises(FileNotFoundError, match="dataset root"):
+        load_tables(tables_copy / "nowhere", VERSION)
+    (tables_copy / VERSION / "map.json").unlink()
+    with pytest.raises(TableError, match=r"v1\.0-synth/map\.json: table is missing"):
+        load_tables(tables_copy, VERSION)
+
+
+def test_corrupt_json_names_the_file(tables_copy):
+    (tables_copy / VERSION / "sample.json").write_text('[{"token": ')
+    with pytest.raises(TableError, match=r"v1\.0-synth/sample\.json: not valid JSON"):
+        load_tables(tables_copy, VERSION)
+    (tables_copy / VERSION / "sample.json").write_text('{"token": "a"}')
+    with pytest.raises(TableError, match=r"v1\.0-synth/sample\.json: expected a JSON list"):
+        load_tables(tables_copy, VERSION)
+
+
+def test_missing_field_names_file_and_record(tables_copy):
+    _edit(tables_copy, "sample_data", lambda rows: rows[17].pop("calibrated_sensor_token"))
+    with pytest.raises(
+        TableError, match=r"^v1\.0-synth/sample_data\.json: record 17 has no 'calibrated_sensor_token'$"
+    ):
+        load_tables(tables_copy, VERSION)
+
+
+def test_repeated_and_dangling_tokens(tables_copy):
+    _edit(tables_copy, "ego_pose", lambda rows: rows.append(dict(rows[3])))
+    with pytest.raises(TableError, match=r"ego_pose\.json: record \d+ repeats token"):
+        load_tables(tables_copy, VERSION)
+    _edit(tables_copy, "ego_pose", lambda rows: rows.pop())
+    _edit(tables_copy, "sample_data", lambda rows: rows[0].update(ego_pose_token="f" * 32))
+    with pytest.raises(TableError, match=r"sample_data\.json: record \w+ refers to ego_pose token 'f{32}', which "):
+        build_index(tables_copy, VERSION)
+
+
+def test_without_labels_occ_path_is_none_and_unknown_scenes_fail(tables_copy):
+    records = build_index(tables_copy, VERSION, scenes=["scene-0002"])
+    assert [r.scene for r in records] == ["scene-0002"] * 3 and all(r.occ_path is None for r in records)
+    with pytest.raises(TableError, match=r"1 scene\(s\) are not in v1\.0-synth/scene\.json: scene-0404"):
+        build_index(tables_copy, VERSION, scenes=["scene-0001", "scene-0404"])
+    with pytest.raises(ValueError, match="max_sweeps"):
+        build_index(tables_copy, VERSION, max_sweeps=-1)
+
+
+# ----------------------------------------------------------------------------------------------------- splits
+def test_official_splits():
+    counts = {name: len(scene_split(name)) for name in ("train", "val", "test", "mini_train", "mini_val")}
+    assert counts == {"train": 700, "val": 150, "test": 150, "mini_train": 8, "mini_val": 2}
+    train, val, test = (set(scene_split(name)) for name in ("train", "val", "test"))
+    assert not train & val and not (train | val) & test
+    assert set(scene_split("mini_train") + scene_split("mini_val")) <= train | val
+    assert "scene-0003" in val and "scene-0061" in scene_split("mini_train")
+    with pytest.raises(ValueError, match="official splits: train, val, test, mini_train, mini_val"):
+        scene_split("trainval")
+
+
+def test_split_scenes_per_version(root, tmp_path):
+    assert split_scenes(tmp_path, "v1.0-trainval", "val") == scene_split("val")
+    assert split_scenes(tmp_path, "v1.0-mini", "train") == scene_split("mini_train")
+    assert split_scenes(tmp_path, "v1.0-mini", "mini_val") == scene_split("mini_val")
+    assert split_scenes(tmp_path, "v1.0-test", "test") == scene_split("test")
+    with pytest.raises(ValueError, match="unknown split 'test' for v1.0-trainval; valid: train, val"):
+        split_scenes(tmp_path, "v1.0-trainval", "test")
+    with pytest.raises(ValueError, match="has no official splits"):
+        split_scenes(tmp_path, VERSION, "train")
+    # The synthetic dataset's splits.json decides, whatever the version.
+    written = json.loads((root / "splits.json").read_text())
+    assert split_scenes(root, VERSION, "train") == written["train"] == ["scene-0001"]
+    assert split_scenes(root, "v1.0-trainval", "val") == written["val"] == ["scene-0002"]
+    with pytest.raises(ValueError, match=r"splits\.json: no split 'test'; the file has 'train', 'val'"):
+        split_scenes(root, VERSION, "test")
+
+
+def test_read_split_file(tmp_path):
+    path = tmp_path / "mine.json"
+    path.write_text(json.dumps(["scene-0001", "scene-0002"]))
+    assert read_split_file(path) == ["scene-0001", "scene-0002"]
+    with pytest.raises(ValueError, match="one list of scenes"):
+        read_split_file(path, "train")
+    path.write_text(json.dumps({"train": ["scene-0001"], "val": [3]}))
+    assert read_split_file(path, "train") == ["scene-0001"]
+    with pytest.raises(ValueError, match=r"mine\.json: val: expected a list of scene names"):
+        read_split_file(path, "val")
+    with pytest.raises(ValueError, match="no split given; the file has 'train', 'val'"):
+        read_split_file(path)
+    path.write_text("[")
+    with pytest.raises(ValueError, match=r"mine\.json: not valid JSON"):
+        read_split_file(path)
+    with pytest.raises(FileNotFoundError, match="nope.json"):
+        read_split_file(tmp_path / "nope.json")
+
+
+def test_table_names_match_the_simulator():
+    from occkit.sim.writer import TABLE_NAMES as WRITTEN
+
+    assert TABLE_NAMES == WRITTEN
+
+
+# ----------------------------------------------------------------------------------------------------- CLI
+def test_cli_index_end_to_end(root, records, tmp_path, capsys):
+    out = tmp_path / "val.json"
+    assert main(["index", "--root", str(root), "--version", VERSION, "--out", str(out), "--split", "val"]) == 0
+    summary = capsys.readouterr().out.strip().splitlines()[-1]
+    assert summary.startswith("indexed 3 key frames of 1 scene(s) (val)") and str(out) in summary
+    loaded, meta = load_index(out)
+    assert loaded == records[3:] and meta["split"] == "val" and meta["max_sweeps"] == 10
+    assert meta["root"] == str(root) and meta["version"] == VERSION
+
+    custom = tmp_path / "custom.json"
+    custom.write_text(json.dumps(["scene-0001"]))
+    args = ["index", "--root", str(root), "--version", VERSION, "--out", str(out), "--split-file", str(custom)]
+    assert main([*args, "--max-sweeps", "2"]) == 0
+    loaded, meta = load_index(out)
+    assert [r.token for r in loaded] == [r.token for r in records[:3]] and meta["max_sweeps"] == 2
+    assert max(len(r.sweeps) for r in loaded) == 2
+
+
+def test_cli_index_bad_input_is_one_line(root, tmp_path, capsys):
+    out = str(tmp_path / "index.json")
+    assert main(["index", "--root", str(root), "--version", VERSION, "--out", out, "--split", "test"]) == 2
+    error = capsys.readouterr().err.strip()
+    assert error.startswith("occkit index: error:") and "no split 'test'" in error and "\n" not in error
+    assert main(["index", "--root", str(tmp_path / "none"), "--version", VERSION, "--out", out]) == 2
+    assert "does not exist" in capsys.readouterr().err
+    assert not Path(out).exists()
