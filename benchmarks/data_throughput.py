@@ -31,7 +31,7 @@ def stage_times(dataset: OccupancyDataset, samples: int) -> dict[str, float]:
         sample = dataset._load(record, rng)  # warm caches, then time each stage on the same record
         stages = (
             ("cameras", dataset._load_cameras, (record, sample, rng)),
-            ("points", dataset._load_points, (record, sample)),
+            ("points", dataset._load_points, (record, sample, rng)),
             ("boxes", dataset._load_boxes, (record, sample)),
             ("occupancy", dataset._load_occupancy, (record, sample, sample.occ_aug.double())),
         )

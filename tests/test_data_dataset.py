@@ -152,3 +152,13 @@ def test_images_are_normalised_rgb(root):
     with Image.open(root / record.cameras["CAM_FRONT"].path) as image:
         assert image.size == (352, 198)
     assert -2.2 < sample.images.min() < 0 < sample.images.max() < 2.7
+
+
+def test_sensor_failure_options(root):
+    full = _dataset(root, sweeps=0)[0]
+    failed = _dataset(root, sweeps=0, drop_cameras=("CAM_BACK",), lidar_beams_every=4, point_dropout=0.5)[0]
+    assert (failed.images[1] == 0).all() and torch.equal(failed.images[0], full.images[0])
+    # 8 of 32 beams, then half of those points.
+    assert 0.05 * len(full.points) < len(failed.points) < 0.2 * len(full.points)
+    with pytest.raises(ValueError, match="CAM_SIDE"):
+        _dataset(root, drop_cameras=("CAM_SIDE",))

@@ -33,6 +33,9 @@ from occkit.data.transforms import (
     augment_image,
     augment_occupancy,
     augment_points,
+    drop_cameras,
+    drop_lidar_beams,
+    drop_points,
     lidar_frame_aug,
     sample_bev_aug,
     sample_image_aug,
@@ -81,6 +84,14 @@ class DatasetConfig:
     """Image resize / crop / flip / rotation."""
     bev_aug: BevAugConfig = field(default_factory=BevAugConfig)
     """BEV flips (and optional rotation / scale) of points, boxes and labels."""
+    drop_cameras: tuple[str, ...] = ()
+    """Robustness evaluation: these cameras are treated as failed (their images zeroed, i.e. the mean colour)."""
+    camera_dropout: float = 0.0
+    """Robustness evaluation: probability that each camera has failed in a sample."""
+    lidar_beams_every: int = 1
+    """Robustness evaluation: keep every k-th LiDAR beam (2: 32 -> 16 beams, 4: 8 beams)."""
+    point_dropout: float = 0.0
+    """Robustness evaluation: fraction of LiDAR points dropped at random, per sweep."""
     depth_downsample: int = 0
     """Return LiDAR depth and height maps at this feature stride (e.g. 16); 0 for none."""
     on_error: Literal["raise", "skip"] = "raise"
@@ -125,7 +136,7 @@ class OccupancyDataset(torch.utils.data.Dataset):
             records = [r for r in records if r.scene in scenes]
         if not records:
             raise ValueError(f"{self.root}: split {config.split!r} of {config.version} has no key frames")
-        missing = [c for c in config.cameras if c not in records[0].cameras]
+        missing = [c for c in (*config.cameras, *config.drop_cameras) if c not in records[0].cameras]
         if missing:
             raise ValueError(f"{self.root}: cameras {missing} not in the data; it has {sorted(records[0].cameras)}")
         self.records = records
@@ -187,7 +198,7 @@ class OccupancyDataset(torch.utils.data.Dataset):
             self._load_cameras(record, sample, rng)
         key_points = None
         if config.sweeps >= 0:
-            key_points = self._load_points(record, sample)
+            key_points = self._load_points(record, sample, rng)
         if config.boxes:
             self._load_boxes(record, sample)
         if config.occupancy:
@@ -214,20 +225,33 @@ class OccupancyDataset(torch.utils.data.Dataset):
             cam2ego.append(_matrix(camera.cam2keyego))
             img_aug.append(params.matrix())
         sample.images = torch.stack(images)
+        failed = [i for i, name in enumerate(self.config.cameras) if name in self.config.drop_cameras]
+        if failed:
+            sample.images = drop_cameras(sample.images, failed)[0]
+        if self.config.camera_dropout > 0:
+            sample.images = drop_cameras(sample.images, self.config.camera_dropout, rng)[0]
         sample.intrinsics = torch.stack(intrinsics)
         sample.cam2ego = torch.stack(cam2ego)
         sample.img_aug = torch.stack(img_aug)
 
-    def _load_points(self, record: FrameRecord, sample: Sample) -> Tensor:
+    def _degrade(self, points: Tensor, rng: np.random.Generator) -> Tensor:
+        """Fewer beams and points, for robustness evaluation; raw rows still hold the ring index in column 4."""
+        if self.config.lidar_beams_every > 1:
+            points = drop_lidar_beams(points, keep_every=self.config.lidar_beams_every)
+        if self.config.point_dropout > 0:
+            points = drop_points(points, self.config.point_dropout, rng)
+        return points
+
+    def _load_points(self, record: FrameRecord, sample: Sample, rng: np.random.Generator) -> Tensor:
         """Key frame plus sweeps in the key LiDAR frame, ``(x, y, z, intensity, time lag)``; returns the key points."""
         path = self.root / record.lidar_path
-        key = torch.from_numpy(_read_points(path, record.token).copy())
-        key = sanitize_points(key, str(path))
+        key = self._degrade(sanitize_points(torch.from_numpy(_read_points(path, record.token).copy()), str(path)), rng)
         key[:, 4] = 0.0  # the ring column becomes the time lag
         clouds = [key]
         for sweep in record.sweeps[: self.config.sweeps]:
             sweep_path = self.root / sweep.path
             points = sanitize_points(torch.from_numpy(_read_points(sweep_path, record.token).copy()), str(sweep_path))
+            points = self._degrade(points, rng)
             transform = _matrix(sweep.sweep2lidar)
             points[:, :3] = points[:, :3] @ transform[:3, :3].T + transform[:3, 3]
             points[:, 4] = sweep.time_lag
