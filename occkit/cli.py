@@ -8,6 +8,7 @@ the work and returns the exit code.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 from collections.abc import Callable, Sequence
@@ -115,9 +116,24 @@ def _add_index(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--split-file", type=Path, metavar="FILE", help="custom split: a JSON list of scene names or {name: [...]}"
     )
+    parser.add_argument(
+        "--from-info",
+        type=Path,
+        metavar="FILE",
+        help="convert a BEVDet / FlashOcc or mmdetection3d v2 info pickle instead of reading the tables; --version "
+        "is then checked against the file's and recorded in the header, --max-sweeps caps the file's sweeps",
+    )
+    parser.add_argument(
+        "--trust-pickle",
+        action="store_true",
+        help="allow --from-info to unpickle FILE: unpickling runs any code the file names, so pass --trust-pickle "
+        "only for files from a source you trust",
+    )
 
 
 def _run_index(args: argparse.Namespace) -> int:
+    if args.from_info is not None:
+        return _index_from_info(args)
     from tqdm import tqdm
 
     from occkit.data.index import build_index, save_index
@@ -147,6 +163,39 @@ def _run_index(args: argparse.Namespace) -> int:
         f"indexed {len(records)} key frames of {len({r.scene for r in records})} scene(s) ({args.split}), "
         f"{sum(r.num_boxes for r in records)} boxes, {labelled} with Occ3D labels -> {args.out}"
     )
+    return 0
+
+
+def _index_from_info(args: argparse.Namespace) -> int:
+    from occkit.data.index import save_index
+    from occkit.data.interop import import_info_file
+
+    if args.split != "all" or args.split_file is not None:
+        raise ValueError(
+            "--from-info takes the info file's frames as they are (the file is one split already); "
+            "leave out --split and --split-file"
+        )
+    if args.max_sweeps < 0:
+        raise ValueError(f"--max-sweeps must be >= 0, got {args.max_sweeps}")
+    records = import_info_file(args.from_info, args.root, version_hint=args.version, trust_pickle=args.trust_pickle)
+    records = [dataclasses.replace(r, sweeps=r.sweeps[: args.max_sweeps]) for r in records]
+    meta = {
+        "version": args.version,
+        "root": str(args.root),
+        "max_sweeps": args.max_sweeps,
+        "from_info": str(args.from_info),
+    }
+    save_index(records, args.out, meta)
+    labelled = sum(record.occ_path is not None for record in records)
+    print(
+        f"converted {len(records)} key frames of {len({r.scene_token or r.token for r in records})} scene(s) from "
+        f"{args.from_info}, {sum(r.num_boxes for r in records)} boxes, {labelled} with Occ3D labels -> {args.out}"
+    )
+    if records and not labelled:
+        print(
+            f"note: no Occ3D labels: the file has no 'occ_path' (FlashOcc's tools/create_data_bevdet.py adds it) "
+            f"and {args.root}/gts/<scene>/<token>/labels.npz does not exist"
+        )
     return 0
 
 

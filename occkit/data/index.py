@@ -439,7 +439,7 @@ def _matrix(value: Any, rows: int | None, columns: int, where: str) -> np.ndarra
 
 
 # ----------------------------------------------------------------------------------------------------- geometry
-def _rotations(quaternions: np.ndarray) -> np.ndarray:
+def quaternions_to_rotations(quaternions: np.ndarray) -> np.ndarray:
     """``(M, 3, 3)`` rotation matrices of ``(M, 4)`` (w, x, y, z) quaternions, normalised first (as
     :func:`occkit.geometry.se3.quaternion_to_matrix`, in numpy: the index needs no torch)."""
     q = quaternions / np.linalg.norm(quaternions, axis=-1, keepdims=True)
@@ -463,13 +463,15 @@ def _rotations(quaternions: np.ndarray) -> np.ndarray:
 def _transforms(records: Sequence[Mapping]) -> np.ndarray:
     """``(M, 4, 4)`` float64 from records with ``translation`` (3) and ``rotation`` (w, x, y, z)."""
     matrices = np.zeros((len(records), 4, 4))
-    matrices[:, :3, :3] = _rotations(np.array([r["rotation"] for r in records], dtype=np.float64).reshape(-1, 4))
+    matrices[:, :3, :3] = quaternions_to_rotations(
+        np.array([r["rotation"] for r in records], dtype=np.float64).reshape(-1, 4)
+    )
     matrices[:, :3, 3] = np.array([r["translation"] for r in records], dtype=np.float64).reshape(-1, 3)
     matrices[:, 3, 3] = 1.0
     return matrices
 
 
-def _invert(transform: np.ndarray) -> np.ndarray:
+def invert_rigid(transform: np.ndarray) -> np.ndarray:
     """Inverse of rigid ``(..., 4, 4)`` transforms."""
     inverse = np.zeros_like(transform)
     rotation_t = np.swapaxes(transform[..., :3, :3], -1, -2)
@@ -479,7 +481,7 @@ def _invert(transform: np.ndarray) -> np.ndarray:
     return inverse
 
 
-def _yaw(rotation: np.ndarray) -> np.ndarray:
+def rotation_yaw(rotation: np.ndarray) -> np.ndarray:
     """Yaw of ``(N, 3, 3)`` rotations as pyquaternion's ``yaw_pitch_roll[0]`` (``R = R_x R_y R_z(yaw)``).
 
     nuscenes-devkit and mmdetection3d's info files take a box's yaw this way. For a rotation about z alone it is the
@@ -628,9 +630,9 @@ class _IndexBuilder:
         # All ego poses of the frame in one batch: key LiDAR, sweeps, cameras.
         poses = _transforms([self._pose(sd) for sd in [lidar, *sweeps, *(key[c] for c in cameras)]])
         ego2global, sweep_poses, camera_poses = poses[0], poses[1 : 1 + len(sweeps)], poses[1 + len(sweeps) :]
-        global2ego = _invert(ego2global)
+        global2ego = invert_rigid(ego2global)
         lidar2ego = self._calibration(lidar)
-        ego2lidar = _invert(lidar2ego)
+        ego2lidar = invert_rigid(lidar2ego)
         global2lidar = ego2lidar @ global2ego
         sweep_records = tuple(
             SweepRecord(
@@ -710,7 +712,9 @@ class _IndexBuilder:
             return np.zeros((0, 9)), np.zeros((0, 9)), np.zeros(0, dtype=bool)
         centres = np.array([a["translation"] for a in annotations], dtype=np.float64).reshape(count, 3)
         sizes = np.array([a["size"] for a in annotations], dtype=np.float64).reshape(count, 3)
-        rotations = _rotations(np.array([a["rotation"] for a in annotations], dtype=np.float64).reshape(count, 4))
+        rotations = quaternions_to_rotations(
+            np.array([a["rotation"] for a in annotations], dtype=np.float64).reshape(count, 4)
+        )
         velocities, valid = self._velocities(annotations)
         lengths_widths_heights = sizes[:, [1, 0, 2]]  # nuScenes size is (w, l, h)
         boxes = []
@@ -721,7 +725,7 @@ class _IndexBuilder:
                     (
                         centres @ rotation.T + transform[:3, 3],
                         lengths_widths_heights,
-                        _yaw(rotation @ rotations)[:, None],
+                        rotation_yaw(rotation @ rotations)[:, None],
                         (velocities @ rotation.T)[:, :2],  # rotated, not translated
                     ),
                     axis=1,
