@@ -27,7 +27,7 @@ from occkit.data.index import (
     save_index,
 )
 from occkit.data.splits import read_split_file, scene_split, split_scenes
-from occkit.data.tables import TABLE_NAMES, TableError, load_tables
+from occkit.data.tables import TableError, load_tables
 from occkit.geometry.grid import OCC3D_GRID
 from occkit.sim.generate import SimConfig, simulate_dataset
 from occkit.sim.rig import pose_matrix
@@ -459,12 +459,6 @@ def test_read_split_file(tmp_path):
         read_split_file(path)
     with pytest.raises(FileNotFoundError, match="nope.json"):
         read_split_file(tmp_path / "nope.json")
-
-
-def test_table_names_match_the_simulator():
-    from occkit.sim.writer import TABLE_NAMES as WRITTEN
-
-    assert TABLE_NAMES == WRITTEN
 
 
 # ----------------------------------------------------------------------------------------------------- CLI

@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 
 from occkit.cli import main
+from occkit.data.tables import load_tables
 from occkit.sim.consistency import boxes_in_cameras, lidar_in_occupied
 from occkit.sim.generate import SimConfig, simulate_dataset
 from occkit.sim.world import WorldConfig
-from occkit.sim.writer import TABLE_NAMES
 
 TINY = SimConfig(
     scenes=1,
@@ -33,7 +33,7 @@ def dataset(tmp_path_factory) -> Path:
 
 
 def _tables(root: Path, version: str = "v1.0-synth") -> dict[str, list[dict]]:
-    return {name: json.loads((root / version / f"{name}.json").read_text()) for name in TABLE_NAMES}
+    return load_tables(root, version).tables
 
 
 def _files(root: Path) -> dict[str, bytes]:

@@ -21,6 +21,7 @@ The JSON file is ``{"format": "occkit-index/1", "version", "root", "max_sweeps",
 
 from __future__ import annotations
 
+import abc
 import json
 import math
 import os
@@ -72,11 +73,12 @@ class IndexFormatError(ValueError):
 
 
 # ----------------------------------------------------------------------------------------------------- records
-class _Record:
+class _Record(abc.ABC):
     """Equality through :meth:`to_dict`: the dataclass-generated one cannot compare numpy arrays."""
 
+    @abc.abstractmethod
     def to_dict(self) -> dict[str, Any]:
-        raise NotImplementedError
+        """The record as JSON-ready nested lists and scalars."""
 
     def __eq__(self, other: object) -> bool:
         if type(other) is not type(self):

@@ -19,22 +19,17 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from occkit.data.tables import NuScenesTables, load_tables
 from occkit.geometry.grid import OCC3D_GRID
 from occkit.sim.rig import pose_matrix
-from occkit.sim.writer import TABLE_NAMES
 
-__all__ = ["load_tables", "lidar_in_occupied", "boxes_in_cameras"]
+__all__ = ["lidar_in_occupied", "boxes_in_cameras"]
 
 # A point exactly on a voxel face floors into the upper voxel; it also touches the lower one.
 _FACE_TOLERANCE = 0.01
 
 
-def load_tables(root: Path, version: str) -> dict[str, list[dict]]:
-    """The 13 nuScenes tables of ``root/version`` as lists of records."""
-    return {name: json.loads((root / version / f"{name}.json").read_text()) for name in TABLE_NAMES}
-
-
-def _key_frame_records(tables: dict[str, list[dict]], modality: str) -> list[tuple[dict, dict]]:
+def _key_frame_records(tables: NuScenesTables, modality: str) -> list[tuple[dict, dict]]:
     """(sample_data, calibrated_sensor) pairs of the key frames of one sensor modality."""
     calibration = {c["token"]: c for c in tables["calibrated_sensor"]}
     modality_of = {s["token"]: s["modality"] for s in tables["sensor"]}

@@ -152,8 +152,9 @@ def simulate_dataset(
 
     ``progress`` is called with the number of key frames finished since the last call.
     """
+    from occkit.data.tables import TABLE_NAMES
     from occkit.sim.scene import simulate_scene
-    from occkit.sim.writer import TABLE_NAMES, static_tables, write_json
+    from occkit.sim.writer import static_tables, write_json
 
     out = Path(out)
     if workers < 1:

@@ -28,7 +28,6 @@ import numpy as np
 from occkit.classes import NUSCENES_TO_OCC3D
 
 __all__ = [
-    "TABLE_NAMES",
     "ATTRIBUTES",
     "VISIBILITY_LEVELS",
     "make_token",
@@ -40,22 +39,6 @@ __all__ = [
     "save_npz",
 ]
 
-#: The 13 tables of a nuScenes version folder, in the devkit's load order.
-TABLE_NAMES = (
-    "category",
-    "attribute",
-    "visibility",
-    "instance",
-    "sensor",
-    "calibrated_sensor",
-    "ego_pose",
-    "log",
-    "scene",
-    "sample",
-    "sample_data",
-    "sample_annotation",
-    "map",
-)
 
 #: nuScenes attribute names.
 ATTRIBUTES = (
