@@ -1,0 +1,28 @@
+"""Occupancy metrics of the field's benchmarks, reproducing the official implementations' numbers."""
+
+from occkit.metrics.confusion import (
+    OccupancyMetric,
+    confusion_matrix,
+    distance_bins,
+    geometry_iou,
+    iou_from_confusion,
+    miou,
+    rt_miou,
+    surroundocc_metrics,
+)
+from occkit.metrics.rayiou import RAYIOU_THRESHOLDS, cast_rays_exact, ray_directions, rayiou
+
+__all__ = [
+    "OccupancyMetric",
+    "confusion_matrix",
+    "distance_bins",
+    "geometry_iou",
+    "iou_from_confusion",
+    "miou",
+    "rt_miou",
+    "surroundocc_metrics",
+    "RAYIOU_THRESHOLDS",
+    "cast_rays_exact",
+    "ray_directions",
+    "rayiou",
+]
