@@ -199,6 +199,54 @@ def _index_from_info(args: argparse.Namespace) -> int:
     return 0
 
 
+# ----------------------------------------------------------------------------------------------------- eval-preds
+def _add_eval_preds(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--gt", type=Path, required=True, help="Occ3D gts/ folder (<scene>/<token>/labels.npz)")
+    parser.add_argument(
+        "--preds", type=Path, required=True, help="folder of <token>.npz predictions (key semantics or pred)"
+    )
+    parser.add_argument("--out", type=Path, required=True, help="folder for metrics.json, metrics.md and the plot")
+    parser.add_argument(
+        "--mask",
+        choices=("camera", "lidar", "none"),
+        default="camera",
+        help="visibility mask for mIoU/IoU (default camera, the official setting)",
+    )
+    parser.add_argument("--rayiou", action="store_true", help="also compute RayIoU (SparseOcc protocol)")
+    parser.add_argument(
+        "--ray-origins", type=Path, metavar="FILE.npz", help="RayIoU ray origins: token -> (T, 3) ego metres"
+    )
+    parser.add_argument(
+        "--allow-missing", action="store_true", help="score frames without a prediction as all free (counted)"
+    )
+    parser.add_argument("--workers", type=int, default=4, help="threads reading and scoring frames (default 4)")
+
+
+def _run_eval_preds(args: argparse.Namespace) -> int:
+    from tqdm import tqdm
+
+    from occkit.metrics.evaluate import evaluate_predictions, find_gt_labels, markdown_table, write_report
+
+    if args.rayiou and args.ray_origins is None:
+        raise ValueError("--rayiou needs --ray-origins FILE.npz (token -> (T, 3) ray origins)")
+    frames = len(find_gt_labels(args.gt))
+    with tqdm(total=frames, unit="frame", desc="eval") as bar:
+        result = evaluate_predictions(
+            args.gt,
+            args.preds,
+            mask=args.mask,
+            ray_origins=args.ray_origins,
+            compute_rayiou=args.rayiou,
+            allow_missing=args.allow_missing,
+            workers=args.workers,
+            progress=bar.update,
+        )
+    print(markdown_table(result), end="")
+    for path in write_report(result, args.out).values():
+        print(f"wrote {path}")
+    return 0
+
+
 # ----------------------------------------------------------------------------------------------------- helpers
 def _write_json(path: Path, payload: dict) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -216,6 +264,11 @@ COMMANDS: dict[str, Command] = {
     ),
     "sim": ("simulate a synthetic driving dataset in the nuScenes + Occ3D layout", _add_sim, _run_sim),
     "index": ("index the key frames of a nuScenes-layout dataset as JSON", _add_index, _run_index),
+    "eval-preds": (
+        "score Occ3D predictions against a gts/ tree: mIoU, IoU and RayIoU",
+        _add_eval_preds,
+        _run_eval_preds,
+    ),
 }
 
 

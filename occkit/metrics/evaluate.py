@@ -1,0 +1,342 @@
+"""Score a folder of Occ3D-nuScenes predictions against a ``gts/`` tree: mIoU, IoU and optionally RayIoU.
+
+Ground truth is the Occ3D layout ``gts/<scene>/<token>/labels.npz``; predictions are one ``<token>.npz`` per frame
+holding ``semantics`` (Occ3D challenge submissions) or ``pred`` (SparseOcc), uint8 ``(200, 200, 16)`` class ids
+0..17. Frames are read in a thread pool; each worker reduces its frame to a confusion matrix and, for RayIoU, to
+ray counts, so memory stays flat however many frames there are. The totals agree with the official ``Metric_mIoU``
+and SparseOcc's ``main_rayiou`` because both metrics are sums of per-frame counts.
+
+:func:`write_report` turns the result into ``metrics.json``, ``metrics.md`` and ``per_class_iou.png``.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import zipfile
+from collections.abc import Callable, Mapping
+from concurrent.futures import ThreadPoolExecutor, as_completed
+from pathlib import Path
+
+import numpy as np
+
+from occkit.classes import OCC3D
+from occkit.data.labels import read_occ3d_labels
+from occkit.metrics.confusion import OccupancyMetric
+from occkit.metrics.rayiou import RAYIOU_THRESHOLDS, rayiou
+
+__all__ = [
+    "PRED_KEYS",
+    "find_gt_labels",
+    "read_prediction",
+    "read_ray_origins",
+    "evaluate_predictions",
+    "markdown_table",
+    "write_report",
+]
+
+#: Keys a prediction file may store its grid under, in the order they are looked up.
+PRED_KEYS: tuple[str, ...] = ("semantics", "pred")
+
+_SHAPE = (200, 200, 16)
+_FREE = OCC3D.empty_index
+_MASKS = {"camera": "camera", "lidar": "lidar", "none": None, None: None}
+# How many missing tokens an error message lists before it only gives the count.
+_LIST_AT_MOST = 10
+
+
+def _token_list(tokens: list[str]) -> str:
+    shown = ", ".join(tokens[:_LIST_AT_MOST])
+    return shown + (f", ... ({len(tokens) - _LIST_AT_MOST} more)" if len(tokens) > _LIST_AT_MOST else "")
+
+
+def _load_npz(path: Path, what: str) -> dict[str, np.ndarray]:
+    """Every array of an npz archive; any failure becomes a ValueError naming the file."""
+    try:
+        loaded = np.load(path, allow_pickle=False)
+        if not isinstance(loaded, np.lib.npyio.NpzFile):
+            raise ValueError(f"{path}: expected an npz archive of {what}, got a bare {type(loaded).__name__}")
+        with loaded:
+            return {key: loaded[key] for key in loaded.files}
+    except FileNotFoundError:
+        raise ValueError(f"{path}: {what} file not found") from None
+    except ValueError as error:
+        if str(path) in str(error):
+            raise
+        # np.load's own ValueError (neither npy nor npz) does not say which file it was reading.
+        raise ValueError(f"{path}: cannot read {what} ({error})") from error
+    except (OSError, zipfile.BadZipFile, EOFError) as error:
+        raise ValueError(f"{path}: cannot read {what} ({error})") from error
+
+
+def find_gt_labels(gt_root: str | Path) -> dict[str, Path]:
+    """Map each token of an Occ3D ``gts/`` tree to its ``labels.npz``, sorted by token.
+
+    Raises:
+        FileNotFoundError: ``gt_root`` is not a folder.
+        ValueError: the tree holds no ``<scene>/<token>/labels.npz``, or one token appears in two scenes.
+    """
+    gt_root = Path(gt_root)
+    if not gt_root.is_dir():
+        raise FileNotFoundError(f"ground-truth folder not found: {gt_root}")
+    found: dict[str, Path] = {}
+    for path in sorted(gt_root.glob("*/*/labels.npz")):
+        token = path.parent.name
+        if token in found:
+            raise ValueError(f"token {token} has labels in two scenes: {found[token]} and {path}")
+        found[token] = path
+    if not found:
+        raise ValueError(f"{gt_root} holds no <scene>/<token>/labels.npz (is it the Occ3D gts/ folder?)")
+    return dict(sorted(found.items()))
+
+
+def read_prediction(path: str | Path) -> np.ndarray:
+    """Read one prediction file: ``semantics`` or ``pred``, integer ``(200, 200, 16)`` with ids 0..17, as uint8.
+
+    Raises:
+        ValueError: unreadable file, no known key, wrong shape, non-integer dtype or ids outside 0..17; the message
+            names the file.
+    """
+    path = Path(path)
+    arrays = _load_npz(path, "prediction")
+    key = next((k for k in PRED_KEYS if k in arrays), None)
+    if key is None:
+        raise ValueError(f"{path}: has none of the keys {', '.join(PRED_KEYS)} (keys: {', '.join(arrays) or 'none'})")
+    grid = arrays[key]
+    if grid.shape != _SHAPE:
+        raise ValueError(f"{path}: {key} has shape {grid.shape} but expected {_SHAPE}")
+    if not np.issubdtype(grid.dtype, np.integer):
+        raise ValueError(f"{path}: {key} has dtype {grid.dtype} but expected uint8 class ids")
+    bad = (grid < 0) | (grid > _FREE)
+    if bad.any():
+        raise ValueError(f"{path}: {key} holds class ids {np.unique(grid[bad])[:16].tolist()} outside 0..{_FREE}")
+    return grid.astype(np.uint8, copy=False)
+
+
+def read_ray_origins(path: str | Path, tokens: list[str]) -> dict[str, np.ndarray]:
+    """Read RayIoU origins: an npz mapping token -> ``(T, 3)`` float ray origins in ego metres.
+
+    Raises:
+        FileNotFoundError: no such file.
+        ValueError: unreadable file, origins missing for some of ``tokens`` (listed), or an array not ``(T, 3)``.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"ray origins file not found: {path}")
+    arrays = _load_npz(path, "ray origins")
+    missing = [token for token in tokens if token not in arrays]
+    if missing:
+        raise ValueError(f"{path}: no ray origins for {len(missing)} of {len(tokens)} frames: {_token_list(missing)}")
+    origins = {token: arrays[token] for token in tokens}
+    for token, array in origins.items():
+        if array.ndim != 2 or array.shape[1] != 3 or len(array) == 0 or not np.issubdtype(array.dtype, np.floating):
+            raise ValueError(
+                f"{path}: origins of {token} must be a float (T, 3) array, got {array.dtype} {array.shape}"
+            )
+    return {token: array.astype(np.float64, copy=False) for token, array in origins.items()}
+
+
+def _score_frame(
+    token: str, gt_path: Path, pred_path: Path | None, mask: str | None, origins: np.ndarray | None
+) -> tuple[np.ndarray, dict | None]:
+    """Confusion matrix of one frame and, when ``origins`` is given, its RayIoU counts."""
+    labels = read_occ3d_labels(gt_path, token)
+    # A frame without a prediction (allowed by the caller) is scored as if everything were predicted free.
+    pred = np.full(_SHAPE, _FREE, np.uint8) if pred_path is None else read_prediction(pred_path)
+    metric = OccupancyMetric(mask=mask)
+    metric.update(labels.semantics, pred, labels.mask_camera, labels.mask_lidar)
+    if origins is None:
+        return metric.confusion, None
+    try:
+        counts = rayiou([labels.semantics], [pred], [origins])["counts"]
+    except ValueError as error:
+        raise ValueError(f"sample {token}: RayIoU failed ({error})") from error
+    return metric.confusion, counts
+
+
+def _rayiou_from_counts(gt: np.ndarray, pred: np.ndarray, tp: np.ndarray) -> dict[str, float]:
+    """RayIoU summary from ray counts summed over frames, as :func:`occkit.metrics.rayiou.rayiou` computes it."""
+    with np.errstate(invalid="ignore", divide="ignore"):
+        iou = (tp / (gt + pred - tp).astype(np.float64))[:, :_FREE]
+    result = {"rayiou": _nanmean(iou)}
+    for row, threshold in zip(iou, RAYIOU_THRESHOLDS, strict=True):
+        result[f"rayiou@{threshold}"] = _nanmean(row)
+    return result
+
+
+def _nanmean(values: np.ndarray) -> float:
+    return math.nan if np.isnan(values).all() else float(np.nanmean(values))
+
+
+def _pair_predictions(gt_paths: Mapping[str, Path], pred_dir: Path, allow_missing: bool) -> dict[str, Path | None]:
+    """Prediction file of each GT token (None where missing and allowed); raises listing the missing tokens."""
+    if not pred_dir.is_dir():
+        raise FileNotFoundError(f"prediction folder not found: {pred_dir}")
+    available = {path.stem: path for path in pred_dir.glob("*.npz")}
+    missing = [token for token in gt_paths if token not in available]
+    if missing and not allow_missing:
+        raise ValueError(
+            f"{pred_dir}: no prediction for {len(missing)} of {len(gt_paths)} frames: {_token_list(missing)} "
+            "(pass --allow-missing to score them as all free)"
+        )
+    return {token: available.get(token) for token in gt_paths}
+
+
+def evaluate_predictions(
+    gt_root: str | Path,
+    pred_dir: str | Path,
+    mask: str | None = "camera",
+    ray_origins: str | Path | Mapping[str, np.ndarray] | None = None,
+    compute_rayiou: bool = False,
+    allow_missing: bool = False,
+    workers: int = 4,
+    progress: Callable[[int], None] | None = None,
+) -> dict:
+    """Score every frame of an Occ3D ``gts/`` tree against ``<token>.npz`` predictions.
+
+    Args:
+        gt_root: the ``gts/`` folder (``<scene>/<token>/labels.npz``).
+        pred_dir: folder of ``<token>.npz`` files with key ``semantics`` or ``pred``.
+        mask: visibility mask applied to mIoU/IoU: ``"camera"`` (the official setting), ``"lidar"``, ``"none"``/None.
+        ray_origins: npz path or mapping token -> ``(T, 3)`` ray origins; required when ``compute_rayiou``.
+        compute_rayiou: also compute SparseOcc's RayIoU (masks are not used by it).
+        allow_missing: score a frame without prediction as all free instead of raising.
+        workers: threads reading and scoring frames.
+        progress: called with 1 after each frame.
+
+    Returns:
+        ``miou``, ``iou``, ``per_class_iou`` {class: float or None}, ``mask``, ``frames``, ``missing_predictions``
+        and with RayIoU ``rayiou``, ``rayiou@1``, ``rayiou@2``, ``rayiou@4``; fractions in [0, 1], NaN as None.
+
+    Raises:
+        FileNotFoundError: a folder or the origins file does not exist.
+        ValueError: bad arguments, missing predictions or origins, or a file with wrong content (named).
+    """
+    if mask not in _MASKS:
+        raise ValueError(f"mask must be camera, lidar or none, got {mask!r}")
+    if workers < 1:
+        raise ValueError(f"workers must be at least 1, got {workers}")
+    if compute_rayiou and ray_origins is None:
+        raise ValueError("RayIoU needs ray origins (--ray-origins FILE.npz mapping token -> (T, 3) origins)")
+    gt_paths = find_gt_labels(gt_root)
+    tokens = list(gt_paths)
+    pred_paths = _pair_predictions(gt_paths, Path(pred_dir), allow_missing)
+    origins: Mapping[str, np.ndarray] | None = None
+    if compute_rayiou:
+        origins = read_ray_origins(ray_origins, tokens) if isinstance(ray_origins, (str, Path)) else ray_origins
+        missing = [token for token in tokens if token not in origins]
+        if missing:
+            raise ValueError(f"no ray origins for {len(missing)} of {len(tokens)} frames: {_token_list(missing)}")
+
+    mode = _MASKS[mask]
+    total = OccupancyMetric(mask=mode)
+    ray_gt = ray_pred = ray_tp = 0
+    with ThreadPoolExecutor(max_workers=workers) as pool:
+        futures = [
+            pool.submit(_score_frame, t, gt_paths[t], pred_paths[t], mode, None if origins is None else origins[t])
+            for t in tokens
+        ]
+        try:
+            for future in as_completed(futures):
+                confusion, counts = future.result()
+                total.confusion += confusion
+                if counts is not None:
+                    ray_gt = ray_gt + np.asarray(counts["gt"], np.int64)
+                    ray_pred = ray_pred + np.asarray(counts["pred"], np.int64)
+                    ray_tp = ray_tp + np.array([counts["tp"][t] for t in RAYIOU_THRESHOLDS], np.int64)
+                if progress is not None:
+                    progress(1)
+        except BaseException:
+            # Fail fast: frames not yet started are dropped instead of being read only to be thrown away.
+            for future in futures:
+                future.cancel()
+            raise
+
+    scores = total.compute()
+    result = {
+        "miou": _finite_or_none(scores["miou"]),
+        "iou": _finite_or_none(scores["iou"]),
+        "per_class_iou": scores["per_class_iou"],
+        "mask": mode or "none",
+        "frames": len(tokens),
+        "missing_predictions": sum(path is None for path in pred_paths.values()),
+    }
+    if compute_rayiou:
+        result.update({k: _finite_or_none(v) for k, v in _rayiou_from_counts(ray_gt, ray_pred, ray_tp).items()})
+    return result
+
+
+def _finite_or_none(value: float) -> float | None:
+    # JSON has no NaN; null is what per_class_iou already uses for "not defined".
+    return None if math.isnan(value) else float(value)
+
+
+def _percent(value: float | None) -> str:
+    return "-" if value is None else f"{100 * value:.2f}"
+
+
+def markdown_table(result: Mapping) -> str:
+    """The result as papers print it: percent with two decimals, mIoU, IoU and the semantic classes (free left out)."""
+    classes = [name for name in result["per_class_iou"] if name != OCC3D.classes[_FREE]]
+    header = ["mIoU", "IoU", *classes]
+    values = [_percent(result["miou"]), _percent(result["iou"])]
+    values += [_percent(result["per_class_iou"][name]) for name in classes]
+    lines = [
+        f"Occ3D-nuScenes, {result['frames']} frames, mask: {result['mask']}, "
+        f"missing predictions: {result['missing_predictions']}",
+        "",
+        "| " + " | ".join(header) + " |",
+        "|" + "|".join(" ---: " for _ in header) + "|",
+        "| " + " | ".join(values) + " |",
+    ]
+    if "rayiou" in result:
+        keys = ["rayiou", *(f"rayiou@{t}" for t in RAYIOU_THRESHOLDS)]
+        lines += [
+            "",
+            "| " + " | ".join(["RayIoU", *(f"RayIoU@{t}" for t in RAYIOU_THRESHOLDS)]) + " |",
+            "|" + "|".join(" ---: " for _ in keys) + "|",
+            "| " + " | ".join(_percent(result[key]) for key in keys) + " |",
+        ]
+    return "\n".join(lines) + "\n"
+
+
+def _plot_per_class(result: Mapping, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    names = list(result["per_class_iou"])
+    values = [100 * (result["per_class_iou"][name] or 0.0) for name in names]
+    colors = [tuple(c / 255 for c in OCC3D.colors[OCC3D.classes.index(name)]) for name in names]
+    figure, axis = plt.subplots(figsize=(7, 0.32 * len(names) + 1.2), dpi=120)
+    # A dark outline keeps the white (free) and black (others) bars visible on a white background.
+    axis.barh(names, values, color=colors, edgecolor="#222222", linewidth=0.8)
+    for row, name in enumerate(names):
+        if result["per_class_iou"][name] is None:
+            axis.text(1, row, "n/a", va="center", fontsize=8)
+    if result["miou"] is not None:
+        axis.axvline(100 * result["miou"], color="#444444", linestyle="--", linewidth=1, label="mIoU")
+        axis.legend(loc="lower right", fontsize=8)
+    axis.invert_yaxis()
+    axis.set_xlim(0, 100)
+    axis.set_xlabel("IoU (%)")
+    axis.set_title(f"Per-class IoU, {result['frames']} frames, mask: {result['mask']}")
+    figure.tight_layout()
+    figure.savefig(path)
+    plt.close(figure)
+
+
+def write_report(result: Mapping, out_dir: str | Path) -> dict[str, Path]:
+    """Write ``metrics.json`` (full precision), ``metrics.md`` (percent table) and ``per_class_iou.png``."""
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    paths = {
+        "json": out_dir / "metrics.json",
+        "markdown": out_dir / "metrics.md",
+        "plot": out_dir / "per_class_iou.png",
+    }
+    paths["json"].write_text(json.dumps(dict(result), indent=2) + "\n")
+    paths["markdown"].write_text(markdown_table(result))
+    _plot_per_class(result, paths["plot"])
+    return paths
