@@ -217,6 +217,10 @@ def _add_eval_preds(parser: argparse.ArgumentParser) -> None:
         "--ray-origins", type=Path, metavar="FILE.npz", help="RayIoU ray origins: token -> (T, 3) ego metres"
     )
     parser.add_argument(
+        "--nuscenes", type=Path, metavar="ROOT", help="derive RayIoU origins from this dataset's key-frame poses"
+    )
+    parser.add_argument("--version", default="v1.0-trainval", help="table folder under --nuscenes")
+    parser.add_argument(
         "--allow-missing", action="store_true", help="score frames without a prediction as all free (counted)"
     )
     parser.add_argument("--workers", type=int, default=4, help="threads reading and scoring frames (default 4)")
@@ -227,15 +231,18 @@ def _run_eval_preds(args: argparse.Namespace) -> int:
 
     from occkit.metrics.evaluate import evaluate_predictions, find_gt_labels, markdown_table, write_report
 
-    if args.rayiou and args.ray_origins is None:
-        raise ValueError("--rayiou needs --ray-origins FILE.npz (token -> (T, 3) ray origins)")
+    origins = args.ray_origins
+    if args.rayiou and origins is None:
+        if args.nuscenes is None:
+            raise ValueError("--rayiou needs --ray-origins FILE.npz or --nuscenes ROOT --version V for the ray origins")
+        origins = _ray_origins_from_tables(args.nuscenes, args.version)
     frames = len(find_gt_labels(args.gt))
     with tqdm(total=frames, unit="frame", desc="eval") as bar:
         result = evaluate_predictions(
             args.gt,
             args.preds,
             mask=args.mask,
-            ray_origins=args.ray_origins,
+            ray_origins=origins,
             compute_rayiou=args.rayiou,
             allow_missing=args.allow_missing,
             workers=args.workers,
@@ -245,6 +252,15 @@ def _run_eval_preds(args: argparse.Namespace) -> int:
     for path in write_report(result, args.out).values():
         print(f"wrote {path}")
     return 0
+
+
+def _ray_origins_from_tables(root: Path, version: str) -> dict:
+    """RayIoU origins of every key frame, from the nuScenes tables of ``root/version``."""
+    from occkit.data.index import build_index
+    from occkit.metrics.origins import PoseRecord, ray_origins
+
+    records = build_index(root, version, max_sweeps=0)
+    return ray_origins([PoseRecord(r.token, r.scene, r.lidar2ego, r.ego2global) for r in records])
 
 
 # ----------------------------------------------------------------------------------------------------- helpers

@@ -142,3 +142,22 @@ def test_cli_end_to_end(trees, official, tmp_path, capsys):
 
     assert main(["eval-preds", *args, "--rayiou"]) == 2
     assert "--ray-origins" in capsys.readouterr().err
+
+
+def test_ray_origins_from_the_dataset_tables(tmp_path, capsys):
+    # A perfect prediction of a synthetic dataset scores 1 everywhere, with origins derived from its tables.
+    from occkit.sim.generate import SimConfig, simulate_dataset
+
+    root = tmp_path / "synth"
+    simulate_dataset(SimConfig(scenes=1, frames=2, image_size=(176, 64), cameras=("CAM_FRONT",)), root)
+    predictions = tmp_path / "preds"
+    predictions.mkdir()
+    for labels in (root / "gts").glob("*/*/labels.npz"):
+        with np.load(labels) as gt:
+            np.savez(predictions / f"{labels.parent.name}.npz", semantics=gt["semantics"])
+    arguments = ["eval-preds", "--gt", str(root / "gts"), "--preds", str(predictions), "--out", str(tmp_path / "out")]
+    assert main([*arguments, "--rayiou", "--nuscenes", str(root), "--version", "v1.0-synth"]) == 0
+    metrics = json.loads((tmp_path / "out" / "metrics.json").read_text())
+    assert metrics["miou"] == 1.0 and metrics["rayiou"] == 1.0
+    assert main([*arguments, "--rayiou"]) == 2
+    assert "--nuscenes ROOT" in capsys.readouterr().err
