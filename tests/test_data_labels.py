@@ -56,6 +56,14 @@ def test_occ3d_round_trip_with_bool_masks(tmp_path):
             },
             r"class ids \[40\] beyond 0..17",
         ),
+        (
+            {
+                "semantics": np.zeros((8, 8, 2), np.uint8),
+                "mask_lidar": np.full((8, 8, 2), 2, np.uint8),
+                "mask_camera": np.zeros((8, 8, 2), np.uint8),
+            },
+            r"mask_lidar holds values \[2\], not 0/1",
+        ),
     ],
 )
 def test_occ3d_errors_name_file_and_sample(tmp_path, arrays, message):

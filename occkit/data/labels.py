@@ -64,6 +64,9 @@ def read_occ3d_labels(path: str | Path, token: str | None = None, grid: VoxelGri
             raise LabelError(f"{where}: {key} has shape {array.shape} but expected {grid.shape}")
         if array.dtype not in (np.uint8, np.bool_):
             raise LabelError(f"{where}: {key} has dtype {array.dtype} but expected uint8")
+    for key in ("mask_lidar", "mask_camera"):
+        if arrays[key].dtype == np.uint8 and arrays[key].max(initial=0) > 1:
+            raise LabelError(f"{where}: {key} holds values {sorted(np.unique(arrays[key]).tolist())[:8]}, not 0/1")
     semantics = arrays["semantics"].astype(np.uint8, copy=False)
     bad = (semantics > 17) & (semantics != IGNORE_INDEX)
     if bad.any():
