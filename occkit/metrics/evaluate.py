@@ -23,7 +23,7 @@ import numpy as np
 from occkit.classes import OCC3D
 from occkit.data.labels import read_occ3d_labels
 from occkit.metrics.confusion import OccupancyMetric
-from occkit.metrics.rayiou import RAYIOU_THRESHOLDS, rayiou
+from occkit.metrics.rayiou import RAYIOU_THRESHOLDS, rayiou, rayiou_from_counts
 
 __all__ = [
     "PRED_KEYS",
@@ -154,20 +154,6 @@ def _score_frame(
     return metric.confusion, counts
 
 
-def _rayiou_from_counts(gt: np.ndarray, pred: np.ndarray, tp: np.ndarray) -> dict[str, float]:
-    """RayIoU summary from ray counts summed over frames, as :func:`occkit.metrics.rayiou.rayiou` computes it."""
-    with np.errstate(invalid="ignore", divide="ignore"):
-        iou = (tp / (gt + pred - tp).astype(np.float64))[:, :_FREE]
-    result = {"rayiou": _nanmean(iou)}
-    for row, threshold in zip(iou, RAYIOU_THRESHOLDS, strict=True):
-        result[f"rayiou@{threshold}"] = _nanmean(row)
-    return result
-
-
-def _nanmean(values: np.ndarray) -> float:
-    return math.nan if np.isnan(values).all() else float(np.nanmean(values))
-
-
 def _pair_predictions(gt_paths: Mapping[str, Path], pred_dir: Path, allow_missing: bool) -> dict[str, Path | None]:
     """Prediction file of each GT token (None where missing and allowed); raises listing the missing tokens."""
     if not pred_dir.is_dir():
@@ -262,7 +248,8 @@ def evaluate_predictions(
         "missing_predictions": sum(path is None for path in pred_paths.values()),
     }
     if compute_rayiou:
-        result.update({k: _finite_or_none(v) for k, v in _rayiou_from_counts(ray_gt, ray_pred, ray_tp).items()})
+        summary = rayiou_from_counts(ray_gt, ray_pred, ray_tp)
+        result.update({key: _finite_or_none(summary[key]) for key in ("rayiou", "rayiou@1", "rayiou@2", "rayiou@4")})
     return result
 
 

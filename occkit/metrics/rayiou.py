@@ -257,7 +257,19 @@ def rayiou(
         for j, threshold in enumerate(RAYIOU_THRESHOLDS):
             tp_cnt[j] += np.bincount(gt_label[same & (err < threshold)], minlength=n_bins)
 
-    gt_cnt, pred_cnt, tp_cnt = gt_cnt[: _FREE + 1], pred_cnt[: _FREE + 1], tp_cnt[:, : _FREE + 1]
+    return rayiou_from_counts(gt_cnt[: _FREE + 1], pred_cnt[: _FREE + 1], tp_cnt[:, : _FREE + 1])
+
+
+def rayiou_from_counts(gt_cnt: np.ndarray, pred_cnt: np.ndarray, tp_cnt: np.ndarray) -> dict:
+    """RayIoU from ray counts summed over frames (the metric is a ratio of sums, so frames can be counted apart).
+
+    Args:
+        gt_cnt, pred_cnt: ``(18,)`` int64 valid rays per GT / predicted class (index 17 = free).
+        tp_cnt: ``(3, 18)`` int64 true positives per threshold of :data:`RAYIOU_THRESHOLDS`.
+
+    Returns:
+        The dict of :func:`rayiou`.
+    """
     with np.errstate(invalid="ignore", divide="ignore"):
         iou = (tp_cnt / (gt_cnt + pred_cnt - tp_cnt).astype(np.float64))[:, :_NUM_CLASSES]
     keys = list(RAYIOU_THRESHOLDS)
@@ -266,9 +278,9 @@ def rayiou(
         result[f"rayiou@{key}"] = _nanmean(iou[j])
     result["per_class"] = {key: [float(v) for v in iou[j]] for j, key in enumerate(keys)}
     result["counts"] = {
-        "gt": gt_cnt.tolist(),
-        "pred": pred_cnt.tolist(),
-        "tp": {key: tp_cnt[j].tolist() for j, key in enumerate(keys)},
+        "gt": np.asarray(gt_cnt).tolist(),
+        "pred": np.asarray(pred_cnt).tolist(),
+        "tp": {key: np.asarray(tp_cnt[j]).tolist() for j, key in enumerate(keys)},
     }
     return result
 
