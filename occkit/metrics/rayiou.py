@@ -19,7 +19,7 @@ from collections.abc import Sequence
 import numpy as np
 from numba import njit, prange
 
-__all__ = ["RAYIOU_THRESHOLDS", "ray_directions", "cast_rays_exact", "rayiou"]
+__all__ = ["RAYIOU_THRESHOLDS", "ray_directions", "cast_rays_exact", "rayiou", "rayiou_from_counts"]
 
 #: Depth thresholds in metres of RayIoU@1, @2 and @4.
 RAYIOU_THRESHOLDS: tuple[int, ...] = (1, 2, 4)
