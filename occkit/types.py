@@ -13,7 +13,7 @@ from dataclasses import dataclass, field, fields
 import torch
 from torch import Tensor
 
-__all__ = ["Sample", "Batch", "OccPrediction"]
+__all__ = ["Sample", "Batch", "ModelOutput", "OccPrediction"]
 
 
 @dataclass
@@ -36,6 +36,8 @@ class Sample:
     """``(N, 4, 4)`` float32 camera -> key-frame ego."""
     img_aug: Tensor | None = None
     """``(N, 3, 3)`` float32 original -> augmented pixel map."""
+    camera_mask: Tensor | None = None
+    """``(N,)`` bool, False for cameras that failed (robustness evaluation); their images are zeroed."""
     lidar2ego: Tensor = field(default_factory=lambda: torch.eye(4))
     """``(4, 4)`` float32 LiDAR -> ego at the key frame."""
     ego2global: Tensor = field(default_factory=lambda: torch.eye(4))
@@ -76,6 +78,8 @@ class Batch:
     """``(B, N, 4, 4)``."""
     img_aug: Tensor | None = None
     """``(B, N, 3, 3)``."""
+    camera_mask: Tensor | None = None
+    """``(B, N)`` bool, cameras that work; None: all of them."""
     lidar2ego: Tensor | None = None
     """``(B, 4, 4)``."""
     ego2global: Tensor | None = None
@@ -117,6 +121,21 @@ class Batch:
                 value = [v.to(device, non_blocking=non_blocking) for v in value]
             moved[f.name] = value
         return Batch(**moved)
+
+
+@dataclass
+class ModelOutput:
+    """What a model's ``forward`` returns: raw head outputs, consumed by its ``loss`` and ``predict``."""
+
+    occupancy: Tensor
+    """``(B, K, X, Y, Z)`` occupancy logits."""
+    detection: list[dict[str, Tensor]] | None = None
+    """CenterPoint maps per task group (``heatmap``, ``reg``, ``height``, ``dim``, ``rot``, ``vel``), each
+    ``(B, C, X', Y')``; None when the detection branch is absent or not run."""
+    depth: Tensor | None = None
+    """``(B, N, D, h, w)`` depth distributions of LSS models."""
+    height: Tensor | None = None
+    """``(B, N, Z, h, w)`` height distributions of DA-Occ."""
 
 
 @dataclass

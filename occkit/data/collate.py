@@ -14,6 +14,7 @@ _STACKED = (
     "intrinsics",
     "cam2ego",
     "img_aug",
+    "camera_mask",
     "lidar2ego",
     "ego2global",
     "bev_aug",

@@ -225,11 +225,14 @@ class OccupancyDataset(torch.utils.data.Dataset):
             cam2ego.append(_matrix(camera.cam2keyego))
             img_aug.append(params.matrix())
         sample.images = torch.stack(images)
+        sample.camera_mask = torch.ones(len(images), dtype=torch.bool)
         failed = [i for i, name in enumerate(self.config.cameras) if name in self.config.drop_cameras]
         if failed:
-            sample.images = drop_cameras(sample.images, failed)[0]
+            sample.images, kept = drop_cameras(sample.images, failed)
+            sample.camera_mask &= kept
         if self.config.camera_dropout > 0:
-            sample.images = drop_cameras(sample.images, self.config.camera_dropout, rng)[0]
+            sample.images, kept = drop_cameras(sample.images, self.config.camera_dropout, rng)
+            sample.camera_mask &= kept
         sample.intrinsics = torch.stack(intrinsics)
         sample.cam2ego = torch.stack(cam2ego)
         sample.img_aug = torch.stack(img_aug)

@@ -1,0 +1,1 @@
+"""Prediction heads on BEV features: occupancy (channel-to-height) and CenterPoint detection."""

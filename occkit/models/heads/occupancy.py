@@ -1,0 +1,81 @@
+"""Channel-to-height occupancy head (FlashOcc, DAOcc): a BEV ``(B, C, X, Y)`` -> logits ``(B, K, X, Y, Z)``.
+
+conv3x3 + ReLU, then per BEV cell an MLP ``Linear(C, 2C) -> Softplus -> Linear(2C, Z * K)`` whose outputs are the
+``Z`` voxels of the column, channel ``z * K + k`` as the references lay them out. The loss is the camera-masked
+cross-entropy, or without the mask the drop-free cross-entropy (DAOcc), optionally class-balanced (BEVDet).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor, nn
+
+from occkit.losses import drop_free_cross_entropy, masked_cross_entropy
+
+__all__ = ["OccupancyHeadConfig", "OccupancyHead", "OCC3D_CLASS_FREQUENCIES"]
+
+#: Voxel counts per Occ3D class (0..16, 17 = free) over the nuScenes train split, as BEVDet's class balance uses.
+OCC3D_CLASS_FREQUENCIES = (
+    944004, 1897170, 152386, 2391677, 16957802, 724139, 189027, 2074468, 413451, 2384460, 5916653, 175883646,
+    4275424, 51393615, 61411620, 105975596, 116424404, 1892500630,
+)  # fmt: skip
+
+
+@dataclass(frozen=True)
+class OccupancyHeadConfig:
+    """Channel-to-height head and its loss."""
+
+    in_channels: int = 128
+    """Channels of the BEV."""
+    hidden_channels: int = 128
+    """Channels after the conv3x3; the MLP's hidden layer has twice as many."""
+    height: int = 16
+    """Voxels per column (Z)."""
+    num_classes: int = 18
+    """Classes, free space included (Occ3D: 18, free = 17; SurroundOcc: 17, empty = 0)."""
+    free_index: int = 17
+    """Class id of free/empty space."""
+    use_mask: bool = True
+    """Cross-entropy over the camera-visible voxels only (``mask_camera``); False: drop-free CE over all voxels."""
+    keep_free: float = 0.2
+    """Without the mask: probability of keeping each free voxel in the loss."""
+    class_balance: bool = False
+    """Weight classes by 1 / ln(frequency + 0.001) with Occ3D's training frequencies (BEVDet)."""
+
+
+class OccupancyHead(nn.Module):
+    """``forward(bev (B, C, X, Y)) -> logits (B, K, X, Y, Z)``; ``loss(logits, labels, mask)``."""
+
+    def __init__(self, cfg: OccupancyHeadConfig) -> None:
+        super().__init__()
+        self.conv = nn.Sequential(nn.Conv2d(cfg.in_channels, cfg.hidden_channels, 3, padding=1), nn.ReLU(inplace=True))
+        self.predictor = nn.Sequential(
+            nn.Linear(cfg.hidden_channels, 2 * cfg.hidden_channels),
+            nn.Softplus(),
+            nn.Linear(2 * cfg.hidden_channels, cfg.height * cfg.num_classes),
+        )
+        if cfg.class_balance:
+            if cfg.num_classes != len(OCC3D_CLASS_FREQUENCIES):
+                raise ValueError(f"class_balance uses Occ3D's 18 class frequencies, not {cfg.num_classes} classes")
+            weights = torch.tensor([1.0 / math.log(f + 0.001) for f in OCC3D_CLASS_FREQUENCIES])
+            self.register_buffer("class_weights", weights, persistent=False)
+        else:
+            self.class_weights = None
+        self.cfg = cfg
+
+    def forward(self, bev: Tensor) -> Tensor:
+        batch, _, x, y = bev.shape
+        columns = self.conv(bev).permute(0, 2, 3, 1)  # (B, X, Y, C)
+        logits = self.predictor(columns).view(batch, x, y, self.cfg.height, self.cfg.num_classes)  # (B, X, Y, Z, K)
+        return logits.permute(0, 4, 1, 2, 3)  # (B, K, X, Y, Z)
+
+    def loss(self, logits: Tensor, labels: Tensor, mask_camera: Tensor | None) -> Tensor:
+        """Scalar loss of ``logits (B, K, X, Y, Z)`` against ``labels (B, X, Y, Z)``."""
+        if self.cfg.use_mask:
+            if mask_camera is None:
+                raise ValueError("the occupancy loss uses mask_camera (use_mask=True) but the batch has none")
+            return masked_cross_entropy(logits, labels, mask_camera, self.class_weights)
+        return drop_free_cross_entropy(logits, labels, self.cfg.free_index, self.cfg.keep_free)

@@ -1,0 +1,1 @@
+"""View transforms: image features -> BEV (projection-and-sampling, LSS)."""

@@ -1,0 +1,66 @@
+"""Image encoder: ResNet stages, LSS-FPN shapes, frozen statistics and stages, local pretrained weights."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+import torchvision
+
+from occkit.models.complexity import count_parameters
+from occkit.models.image_encoder import ImageEncoder, ImageEncoderConfig, ResNetBackbone
+
+TINY = ImageEncoderConfig(depth=18, blocks=(1, 1, 1, 1), neck_channels=32)
+
+
+def test_resnet50_lss_fpn_shapes_and_parameters_at_the_paper_resolution():
+    encoder = ImageEncoder(ImageEncoderConfig()).eval()
+    assert encoder.backbone.out_channels == (512, 1024, 2048)
+    assert encoder.stride == 8
+    # torchvision's ResNet-50 without its classifier: 23.51 M parameters.
+    assert count_parameters(encoder.backbone) == 23_508_032
+    with torch.no_grad():
+        levels = encoder.backbone(torch.zeros(1, 3, 256, 704))
+        assert [tuple(f.shape[1:]) for f in levels] == [(512, 32, 88), (1024, 16, 44), (2048, 8, 22)]
+        assert tuple(encoder.neck(levels).shape) == (1, 256, 32, 88)
+
+
+def test_multi_camera_layout_and_gradients():
+    encoder = ImageEncoder(TINY)
+    out = encoder(torch.randn(2, 3, 3, 64, 176))
+    assert tuple(out.shape) == (2, 3, 32, 8, 22)
+    out.square().mean().backward()
+    assert all(p.grad is not None for p in encoder.parameters() if p.requires_grad)
+
+
+def test_norm_eval_keeps_batchnorm_statistics_frozen_in_training():
+    encoder = ImageEncoder(TINY).train()
+    before = encoder.backbone.stem[1].running_mean.clone()
+    encoder(torch.randn(1, 2, 3, 64, 64) * 5 + 3)
+    torch.testing.assert_close(encoder.backbone.stem[1].running_mean, before)
+    assert not encoder.backbone.stem[1].training
+    assert encoder.neck.training  # the neck's own BatchNorms train as usual
+
+
+def test_frozen_stages_have_no_trainable_parameters():
+    backbone = ResNetBackbone(ImageEncoderConfig(depth=18, blocks=(1, 1, 1, 1), frozen_stages=1))
+    assert not any(p.requires_grad for p in backbone.stem.parameters())
+    assert not any(p.requires_grad for p in backbone.stages[0].parameters())
+    assert all(p.requires_grad for p in backbone.stages[1].parameters())
+
+
+def test_pretrained_weights_load_from_a_local_file(tmp_path):
+    reference = torchvision.models.resnet18(weights=None)
+    path = tmp_path / "resnet18.pth"
+    torch.save(reference.state_dict(), path)
+    backbone = ResNetBackbone(ImageEncoderConfig(depth=18, pretrained=str(path)))
+    torch.testing.assert_close(backbone.stages[3][1].conv2.weight, reference.layer4[1].conv2.weight)
+
+    with pytest.raises(ValueError, match="does not match a ResNet-50"):
+        ResNetBackbone(ImageEncoderConfig(depth=50, pretrained=str(path)))
+    with pytest.raises(FileNotFoundError, match="missing.pth"):
+        ResNetBackbone(ImageEncoderConfig(depth=18, pretrained=str(tmp_path / "missing.pth")))
+
+
+def test_bad_depth_is_a_clear_error():
+    with pytest.raises(ValueError, match="depth must be one of"):
+        ResNetBackbone(ImageEncoderConfig(depth=42))
