@@ -1,0 +1,166 @@
+"""Model zoo: names -> configs -> models, plain Python, no registry beyond this table.
+
+    >>> from occkit import zoo
+    >>> zoo.names()[:2]
+    ['daocc', 'daocc_lidar']
+    >>> model = zoo.build("daocc_tiny")
+
+Every entry has a YAML twin in ``configs/NAME.yaml`` (``architecture`` + ``model``), written by
+:func:`config_yaml` and kept equal to the factory by a test, so a config file read with :func:`load_model_config`
+and a name given to :func:`build` mean the same model.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from torch import nn
+
+from occkit.config import ConfigError, dump_yaml, from_dict
+
+__all__ = ["names", "model_config", "build", "build_from_config", "config_yaml", "load_model_config", "ARCHITECTURES"]
+
+
+def _daocc_classes() -> tuple[type, type]:
+    from occkit.models.daocc import DAOcc, DAOccConfig
+
+    return DAOccConfig, DAOcc
+
+
+#: architecture name -> () -> (config class, model class); imported lazily so ``occkit --help`` stays light.
+ARCHITECTURES: dict[str, Callable[[], tuple[type, type]]] = {"daocc": _daocc_classes}
+
+
+# ------------------------------------------------------------------------------------------------ DAOcc entries
+def _daocc() -> Any:
+    """DAOcc, Occ3D-nuScenes paper setting: ResNet-50 at 256 x 704, 10 LiDAR sweeps, camera mask, 53.8 mIoU."""
+    config_class, _ = _daocc_classes()
+    return config_class()
+
+
+def _daocc_surroundocc() -> Any:
+    """DAOcc on SurroundOcc: LiDAR-frame +-50 m grid at 0.5 m, 17 classes (0 = empty), drop-free CE, no mask."""
+    from occkit.models.heads.occupancy import OccupancyHeadConfig
+    from occkit.models.range_extension import RangeExtensionConfig
+
+    cfg = _daocc()
+    return dataclasses.replace(
+        cfg,
+        occ_range=(-50.0, -50.0, -5.0, 50.0, 50.0, 3.0),
+        occ_voxel_size=(0.5, 0.5, 0.5),
+        range_extension=RangeExtensionConfig(label_frame="lidar"),
+        occupancy=OccupancyHeadConfig(num_classes=17, free_index=0, use_mask=False),
+    )
+
+
+def _daocc_lidar() -> Any:
+    """DAOcc without its camera branch: LiDAR only, asked for by the reference's users."""
+    return dataclasses.replace(_daocc(), image=None)
+
+
+def _daocc_tiny() -> Any:
+    """DAOcc's architecture scaled down for CPUs: ResNet-18 (one block per stage), +-43.2 m at 0.15 m voxels
+    (72 x 72 BEV of 1.2 m cells), narrow channels; the Occ3D output grid is unchanged."""
+    from occkit.models.bev_encoder import BevEncoderConfig
+    from occkit.models.heads.center import CenterHeadConfig
+    from occkit.models.heads.occupancy import OccupancyHeadConfig
+    from occkit.models.image_encoder import ImageEncoderConfig
+    from occkit.models.lidar_encoder import LidarEncoderConfig
+    from occkit.models.range_extension import RangeExtensionConfig
+    from occkit.models.view_transform.projection import ProjectionConfig
+
+    extent = 43.2
+    lidar_range = (-extent, -extent, -5.0, extent, extent, 3.0)
+    config_class, _ = _daocc_classes()
+    return config_class(
+        image=ImageEncoderConfig(depth=18, blocks=(1, 1, 1, 1), neck_channels=64),
+        view=ProjectionConfig(point_cloud_range=lidar_range, grid_size=(72, 72, 4), in_channels=64, out_channels=16),
+        lidar=LidarEncoderConfig(
+            point_cloud_range=lidar_range,
+            voxel_size=(0.15, 0.15, 0.2),
+            max_voxels_train=60000,
+            max_voxels_test=80000,
+            base_channels=8,
+            encoder_channels=((8, 8, 16), (16, 16, 32), (32, 32, 32), (32, 32)),
+            output_channels=32,
+        ),
+        fusion_channels=64,
+        bev=BevEncoderConfig(in_channels=64, blocks=(1, 1, 1), channels=(32, 64, 128), neck_channels=64),
+        range_extension=RangeExtensionConfig(bev_range=(-extent, -extent, extent, extent), in_channels=64,
+                                             out_channels=32),
+        occupancy=OccupancyHeadConfig(in_channels=32, hidden_channels=32),
+        detection=CenterHeadConfig(
+            in_channels=64, share_conv_channels=16, head_conv_channels=16, point_cloud_range=lidar_range,
+            voxel_size=(0.15, 0.15),
+        ),
+    )  # fmt: skip
+
+
+_ZOO: dict[str, tuple[str, Callable[[], Any]]] = {
+    "daocc": ("daocc", _daocc),
+    "daocc_lidar": ("daocc", _daocc_lidar),
+    "daocc_surroundocc": ("daocc", _daocc_surroundocc),
+    "daocc_tiny": ("daocc", _daocc_tiny),
+}
+
+
+def names() -> list[str]:
+    """Zoo entry names, sorted."""
+    return sorted(_ZOO)
+
+
+def _entry(name: str) -> tuple[str, Callable[[], Any]]:
+    if name not in _ZOO:
+        raise KeyError(f"unknown model {name!r}; the zoo has: {', '.join(names())}")
+    return _ZOO[name]
+
+
+def description(name: str) -> str:
+    """One paragraph on what the entry is."""
+    return " ".join((_entry(name)[1].__doc__ or "").split())
+
+
+def model_config(name: str) -> tuple[str, Any]:
+    """``(architecture, config)`` of a zoo entry."""
+    architecture, factory = _entry(name)
+    return architecture, factory()
+
+
+def build_from_config(architecture: str, cfg: Any) -> nn.Module:
+    """The model of ``architecture`` built from ``cfg``."""
+    if architecture not in ARCHITECTURES:
+        raise ConfigError(f"architecture: unknown {architecture!r}; known: {', '.join(sorted(ARCHITECTURES))}")
+    _, model_class = ARCHITECTURES[architecture]()
+    return model_class(cfg)
+
+
+def build(name: str) -> nn.Module:
+    """A freshly initialised model of the zoo entry ``name``."""
+    return build_from_config(*model_config(name))
+
+
+def config_yaml(name: str) -> str:
+    """The YAML text of ``configs/NAME.yaml``: a description, the architecture and the commented model config."""
+    architecture, cfg = model_config(name)
+    header = f"# {name}: {description(name)}\n# Build with occkit.zoo.build({name!r}) or load this file.\n"
+    body = dump_yaml(cfg).rstrip("\n")
+    indented = "\n".join(("  " + line) if line else line for line in body.splitlines())
+    return f"{header}architecture: {architecture}\nmodel:\n{indented}\n"
+
+
+def load_model_config(path: str | Path) -> tuple[str, Any]:
+    """``(architecture, config)`` read from a model YAML; unknown keys are errors naming the file."""
+    import yaml
+
+    path = Path(path)
+    data = yaml.safe_load(path.read_text())
+    if not isinstance(data, dict) or "architecture" not in data or "model" not in data:
+        raise ConfigError(f"{path}: a model config needs the keys 'architecture' and 'model'")
+    architecture = data["architecture"]
+    if architecture not in ARCHITECTURES:
+        raise ConfigError(f"{path}: unknown architecture {architecture!r}; known: {', '.join(sorted(ARCHITECTURES))}")
+    config_class, _ = ARCHITECTURES[architecture]()
+    return architecture, from_dict(config_class, data["model"], where=str(path))

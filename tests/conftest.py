@@ -1,0 +1,84 @@
+"""Shared fixtures: a small, geometrically consistent synthetic Batch for model tests."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from occkit.geometry.se3 import make_transform, rotation_about_z
+from occkit.types import Batch
+
+OCC_SHAPE = (200, 200, 16)
+
+
+def _camera2ego(yaw_deg: float) -> torch.Tensor:
+    optical = torch.tensor([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])  # camera axes in ego-forward terms
+    return make_transform(rotation_about_z(torch.tensor(math.radians(yaw_deg))) @ optical, torch.tensor([1.0, 0, 1.5]))
+
+
+def make_batch(
+    batch_size: int = 2,
+    num_cameras: int = 2,
+    image_size: tuple[int, int] = (64, 176),
+    num_points: int = 3000,
+    seed: int = 0,
+    occupancy: bool = True,
+) -> Batch:
+    """A batch with ``num_cameras`` cameras spread around the car, random points in +-40 m, ten boxes per sample
+    and labels that follow simple rules (ground low, a vehicle class around three of the boxes, free above)."""
+    generator = torch.Generator().manual_seed(seed)
+    height, width = image_size
+    focal = width / 2
+    intrinsics = torch.tensor([[focal, 0, width / 2], [0, focal, height / 2], [0, 0, 1.0]])
+    yaws = [360.0 * i / num_cameras for i in range(num_cameras)]
+    lidar2ego = make_transform(rotation_about_z(torch.tensor(math.pi / 2)), torch.tensor([0.94, 0.0, 1.84]))
+    points = torch.rand(batch_size, num_points, 5, generator=generator)
+    points[..., :2] = points[..., :2] * 80 - 40
+    points[..., 2] = points[..., 2] * 4 - 3
+    points[..., 4] = (points[..., 4] * 10).floor() * 0.05
+    # Boxes of every detection task, an odd number per task (so no regression gradient can cancel exactly).
+    box_labels = torch.tensor([0, 1, 2, 2, 3, 5, 6, 7, 7, 8])
+    num_boxes = len(box_labels)
+    centres = torch.rand(batch_size, num_boxes, 2, generator=generator) * 40 - 20
+    boxes = [
+        torch.cat([c, torch.full((num_boxes, 1), -0.9), torch.rand(num_boxes, 3, generator=generator) * 3 + 0.5,
+                   torch.rand(num_boxes, 1, generator=generator) * 6, torch.randn(num_boxes, 2, generator=generator)],
+                  dim=1)
+        for c in centres
+    ]  # fmt: skip
+    batch = Batch(
+        tokens=[f"sample{i}" for i in range(batch_size)],
+        scenes=["scene-test"] * batch_size,
+        images=torch.randn(batch_size, num_cameras, 3, height, width, generator=generator),
+        intrinsics=intrinsics.expand(batch_size, num_cameras, 3, 3).clone(),
+        cam2ego=torch.stack([_camera2ego(y) for y in yaws]).expand(batch_size, -1, -1, -1).clone(),
+        img_aug=torch.eye(3).expand(batch_size, num_cameras, 3, 3).clone(),
+        camera_mask=torch.ones(batch_size, num_cameras, dtype=torch.bool),
+        lidar2ego=lidar2ego.expand(batch_size, 4, 4).clone(),
+        ego2global=torch.eye(4, dtype=torch.float64).expand(batch_size, 4, 4).clone(),
+        points=points,
+        num_points=torch.full((batch_size,), num_points, dtype=torch.int64),
+        bev_aug=torch.eye(4).expand(batch_size, 4, 4).clone(),
+        occ_aug=torch.eye(4).expand(batch_size, 4, 4).clone(),
+        boxes=boxes,
+        box_labels=[box_labels.clone() for _ in range(batch_size)],
+    )
+    if occupancy:
+        labels = torch.full((batch_size, *OCC_SHAPE), 17, dtype=torch.uint8)
+        labels[..., :2] = 11  # driveable surface at z < -0.2 m
+        for b, centre in enumerate(centres):
+            ix, iy = ((centre[:3] + 40) / 0.4).long().T
+            for x, y in zip(ix.tolist(), iy.tolist(), strict=True):
+                labels[b, x - 5 : x + 6, y - 2 : y + 3, 2:6] = 1 + b  # a vehicle class per sample
+        batch.voxel_semantics = labels
+        batch.mask_camera = torch.rand(batch_size, *OCC_SHAPE, generator=generator) > 0.3
+        batch.mask_lidar = torch.ones(batch_size, *OCC_SHAPE, dtype=torch.bool)
+    return batch
+
+
+@pytest.fixture
+def synthetic_batch():
+    """Factory: ``synthetic_batch(**kwargs)`` -> :func:`make_batch`."""
+    return make_batch

@@ -1,0 +1,132 @@
+"""DAOcc end to end on tiny synthetic batches: shapes at every stage, gradients, learning, variants, the zoo."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import pytest
+import torch
+
+from occkit import zoo
+from occkit.config import ConfigError
+from occkit.models.complexity import count_macs, count_parameters
+from occkit.models.daocc import DAOcc, DAOccConfig
+from occkit.types import OccPrediction
+
+CONFIGS = Path(__file__).resolve().parents[1] / "configs"
+
+
+def tiny(**changes) -> DAOcc:
+    torch.manual_seed(0)
+    _, cfg = zoo.model_config("daocc_tiny")
+    return DAOcc(dataclasses.replace(cfg, **changes))
+
+
+@pytest.mark.parametrize("name", zoo.names())
+def test_every_zoo_entry_builds_and_matches_its_yaml(name):
+    model = zoo.build(name)
+    assert count_parameters(model) > 0
+    path = CONFIGS / f"{name}.yaml"
+    assert path.read_text() == zoo.config_yaml(name), f"{path} is stale: regenerate it with scripts/write_configs.py"
+    assert zoo.load_model_config(path) == zoo.model_config(name)
+
+
+def test_shapes_at_every_stage(synthetic_batch):
+    model = tiny().train()
+    batch = synthetic_batch()
+    features = model.image_encoder(batch.images)
+    assert tuple(features.shape) == (2, 2, 64, 8, 22)
+    plan = model.view_transform.plan(batch.intrinsics, batch.cam2ego, batch.img_aug, batch.lidar2ego,
+                                     batch.bev_aug, image_size=(64, 176))
+    camera_bev = model.view_transform(features, plan)
+    assert tuple(camera_bev.shape) == (2, 16 * 4, 72, 72)
+    lidar_bev = model.lidar_encoder(batch.points, batch.num_points)
+    assert tuple(lidar_bev.shape) == (2, model.lidar_encoder.out_channels, 72, 72)
+    bev = model.bev_encoder(model.fuser([camera_bev, lidar_bev]))
+    assert tuple(bev.shape) == (2, 64, 72, 72)
+    occ_bev = model.range_extension(bev, batch.lidar2ego, batch.bev_aug, batch.occ_aug)
+    assert tuple(occ_bev.shape) == (2, 32, 200, 200)
+    output = model(batch)
+    assert tuple(output.occupancy.shape) == (2, 18, 200, 200, 16)
+    assert len(output.detection) == 6
+    assert tuple(output.detection[0]["heatmap"].shape) == (2, 1, 72, 72)
+    assert tuple(output.detection[5]["heatmap"].shape) == (2, 2, 72, 72)
+
+
+def test_every_parameter_gets_a_gradient(synthetic_batch):
+    model = tiny().train()
+    batch = synthetic_batch(batch_size=1)  # an odd number of boxes per task: L1 signs at a bias cannot cancel
+    losses = model.loss(model(batch), batch)
+    assert set(losses) == {"occupancy", "det_heatmap", "det_bbox"}
+    sum(losses.values()).backward()
+    missing = [n for n, p in model.named_parameters() if p.requires_grad and (p.grad is None or not p.grad.any())]
+    assert not missing, f"no gradient for {missing}"
+    assert all(torch.isfinite(p.grad).all() for p in model.parameters() if p.grad is not None)
+
+
+def test_loss_decreases_on_a_fixed_batch(synthetic_batch):
+    model = tiny().train()
+    batch = synthetic_batch(batch_size=1)
+    optimizer = torch.optim.AdamW(model.parameters(), lr=2e-3)
+    history = []
+    for _ in range(20):
+        loss = sum(model.loss(model(batch), batch).values())
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+        history.append(loss.item())
+    assert history[-1] < 0.5 * history[0], history
+
+
+def test_lidar_only_variant_has_no_camera_branch(synthetic_batch):
+    model = tiny(image=None).eval()
+    assert model.image_encoder is None and model.view_transform is None
+    batch = synthetic_batch()
+    batch.images = None
+    assert model.predict(batch).semantics.shape == (2, 200, 200, 16)
+
+
+def test_failed_cameras_and_empty_lidar(synthetic_batch):
+    model = tiny().eval()
+    batch = synthetic_batch(num_cameras=3)
+    full = model(batch).occupancy
+    batch.camera_mask[:, 1] = False
+    masked = model(batch).occupancy
+    assert torch.isfinite(masked).all() and not torch.equal(full, masked)
+    batch.num_points.zero_()
+    assert torch.isfinite(model(batch).occupancy).all()
+    one_camera = synthetic_batch(num_cameras=1)
+    assert model(one_camera).occupancy.shape == (2, 18, 200, 200, 16)
+
+
+def test_detection_branch_is_detachable(synthetic_batch):
+    model = tiny().eval()
+    batch = synthetic_batch(batch_size=1)
+    assert model(batch).detection is None  # inference skips it
+    prediction = model.predict(batch, boxes=True)
+    assert isinstance(prediction, OccPrediction) and prediction.semantics.dtype == torch.uint8
+    assert len(prediction.boxes) == 1 and prediction.boxes[0].shape[1] == 9
+    with_head = count_macs(model, lambda: model(batch, detect=True)).total
+    before = count_parameters(model)
+    model.remove_detection()
+    assert count_parameters(model) < before
+    assert count_macs(model, lambda: model(batch)).total < with_head
+    assert model.predict(batch, boxes=True).boxes is None
+
+
+def test_inconsistent_channels_are_clear_errors():
+    _, cfg = zoo.model_config("daocc_tiny")
+    with pytest.raises(ValueError, match="bev.in_channels = 64 must equal fusion_channels = 32"):
+        dataclasses.replace(cfg, fusion_channels=32)
+    with pytest.raises(ValueError, match="camera branch"):
+        DAOccConfig(image=None, lidar=None)
+
+
+def test_zoo_errors_name_the_problem(tmp_path):
+    with pytest.raises(KeyError, match="unknown model 'daoc'"):
+        zoo.build("daoc")
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(zoo.config_yaml("daocc_tiny").replace("fusion_channels:", "fusion_channel:"))
+    with pytest.raises(ConfigError, match="fusion_channel"):
+        zoo.load_model_config(bad)
