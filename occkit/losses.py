@@ -1,9 +1,26 @@
 """Losses of the occupancy field, as pure functions of tensors.
 
-Occupancy logits follow occkit's order ``(B, K, X, Y, Z)`` with labels ``(B, X, Y, Z)``; ``255`` is ignored everywhere.
+Occupancy logits follow occkit's order ``(B, K, X, Y, Z)`` (any trailing spatial dims) with labels ``(B, X, Y, Z)``;
+``255`` is ignored everywhere, and an optional bool ``mask (B, X, Y, Z)`` (the camera visibility mask) restricts the
+voxels that count.
+
+- :func:`masked_cross_entropy`: cross-entropy over the camera mask (FlashOcc, DAOcc; mmdet's ``avg_factor``).
+- :func:`drop_free_cross_entropy`: cross-entropy keeping a random share of free voxels (DAOcc).
+- :func:`class_weights_from_frequencies`: ``1 / ln(frequency)`` class balance (BEVDet, FlashOcc).
+- :func:`focal_loss`: softmax focal loss (Lin et al., "Focal Loss for Dense Object Detection").
+- :func:`lovasz_softmax`, :func:`lovasz_grad`: the Lovasz extension of the Jaccard loss (Berman et al.,
+  "The Lovasz-Softmax loss").
+- :func:`scene_class_affinity_semantic`, :func:`scene_class_affinity_geometric`: MonoScene's ``sem_scal_loss``
+  and ``geo_scal_loss`` (Cao and de Charette, "MonoScene").
+- :func:`depth_bce`: binary cross-entropy of per-pixel depth bins against LiDAR depth (BEVDepth).
+- :func:`height_bce`: the same for height bins against LiDAR heights (DHD, DA-Occ's HeightNet).
+- :func:`gaussian_focal_loss`, :func:`weighted_l1_loss`: heatmap and box regression losses (CenterNet, CenterPoint).
 """
 
 from __future__ import annotations
+
+import math
+from collections.abc import Sequence
 
 import torch
 import torch.nn.functional as F
@@ -14,6 +31,14 @@ from occkit.classes import IGNORE_INDEX
 __all__ = [
     "masked_cross_entropy",
     "drop_free_cross_entropy",
+    "class_weights_from_frequencies",
+    "focal_loss",
+    "lovasz_grad",
+    "lovasz_softmax",
+    "scene_class_affinity_semantic",
+    "scene_class_affinity_geometric",
+    "depth_bce",
+    "height_bce",
     "gaussian_focal_loss",
     "weighted_l1_loss",
 ]
@@ -111,3 +136,255 @@ def weighted_l1_loss(pred: Tensor, target: Tensor, weight: Tensor) -> Tensor:
     """Sum of ``weight * |pred - target|`` (divide by the number of objects); ``nan`` targets must have weight 0."""
     target = torch.where(weight > 0, target, pred.detach())
     return (weight * (pred - target).abs()).sum()
+
+
+def _counted(labels: Tensor, mask: Tensor | None, dtype: torch.dtype) -> tuple[Tensor, Tensor]:
+    """Labels safe to index with (ignored ids replaced by 0) and the 0/1 ``dtype`` weight of the voxels that count.
+
+    A voxel counts when its label is not ``255`` and, given a mask, the mask holds there.
+    """
+    labels = labels.long()
+    counted = labels != IGNORE_INDEX
+    if mask is not None:
+        if mask.shape != labels.shape:
+            raise ValueError(f"mask {tuple(mask.shape)} and labels {tuple(labels.shape)} disagree")
+        counted = counted & mask.bool()
+    return torch.where(counted, labels, torch.zeros_like(labels)), counted.to(dtype)
+
+
+def class_weights_from_frequencies(frequencies: Tensor | Sequence[float], eps: float = 0.001) -> Tensor:
+    """Per-class weights ``1 / ln(frequency + eps)`` (BEVDet's and FlashOcc's class balance).
+
+    The log flattens the imbalance: Occ3D's free class, about 2000 times as frequent as a bicycle, weighs only about
+    1.8 times less.
+
+    Args:
+        frequencies: ``(K,)`` voxel counts per class over the training split (e.g. ``OCC3D_CLASS_FREQUENCIES``).
+        eps: added before the log, as the references do.
+
+    Returns:
+        ``(K,)`` weights, in the dtype of a floating ``frequencies`` tensor, else torch's default dtype.
+    """
+    is_float_tensor = isinstance(frequencies, Tensor) and frequencies.is_floating_point()
+    dtype = frequencies.dtype if is_float_tensor else torch.get_default_dtype()
+    counts = torch.as_tensor(frequencies, dtype=torch.float64)
+    # A count at or below 1 - eps gives a log <= 0, hence an infinite or negative weight: counts, not fractions.
+    if counts.dim() != 1 or bool((counts + eps <= 1).any()):
+        raise ValueError("frequencies must be (K,) voxel counts above 1 - eps, so that every log is positive")
+    return (1.0 / torch.log(counts + eps)).to(dtype)
+
+
+def focal_loss(
+    logits: Tensor, labels: Tensor, gamma: float = 2.0, alpha: Tensor | None = None, mask: Tensor | None = None
+) -> Tensor:
+    """Softmax focal loss ``-alpha_y (1 - p_y)^gamma ln p_y`` averaged over the counted voxels (Lin et al.).
+
+    Args:
+        logits: ``(B, K, ...)`` unnormalised scores.
+        labels: ``(B, ...)`` integer class ids, ``255`` ignored.
+        gamma: focusing exponent; 0 gives the cross-entropy.
+        alpha: ``(K,)`` optional per-class weights (the divisor stays the voxel count).
+        mask: ``(B, ...)`` bool, voxels that count; None counts every voxel.
+
+    Returns:
+        Scalar loss; zero (with a gradient path) when no voxel counts.
+    """
+    _check_logits_labels(logits, labels)
+    safe_labels, weight = _counted(labels, mask, logits.dtype)
+    log_p = F.log_softmax(logits, dim=1).gather(1, safe_labels.unsqueeze(1)).squeeze(1)  # (B, ...) ln p_y
+    per_voxel = -(1 - log_p.exp()).pow(gamma) * log_p
+    if alpha is not None:
+        per_voxel = per_voxel * alpha.to(logits)[safe_labels]
+    return (per_voxel * weight).sum() / weight.sum().clamp_min(1.0)
+
+
+def lovasz_grad(gt_sorted: Tensor) -> Tensor:
+    """Gradient of the Lovasz extension of the Jaccard loss at errors sorted in decreasing order (Berman et al.).
+
+    Entry ``i`` is the Jaccard loss when the ``i + 1`` largest errors are counted as mispredictions minus the loss
+    when the ``i`` largest are; the Lovasz extension is the dot product of these increments with the sorted errors.
+
+    Args:
+        gt_sorted: ``(P, ...)`` float 0/1 ground truth ordered by decreasing error along dim 0; trailing dims are
+            independent problems (e.g. one per class).
+
+    Returns:
+        ``(P, ...)`` increments, same dtype.
+    """
+    total = gt_sorted.sum(0, keepdim=True)
+    intersection = total - gt_sorted.cumsum(0)  # ground-truth voxels not yet among the mispredictions
+    union = total + (1 - gt_sorted).cumsum(0)  # >= 1: the total if positive, else the count of negatives so far
+    jaccard = 1 - intersection / union
+    return torch.cat([jaccard[:1], jaccard[1:] - jaccard[:-1]], dim=0)
+
+
+def lovasz_softmax(probs: Tensor, labels: Tensor, mask: Tensor | None = None, classes: str = "present") -> Tensor:
+    """Lovasz-softmax loss (Berman et al.): the Lovasz extension of each class's Jaccard loss, averaged over classes.
+
+    Per class ``c`` the errors ``|[y = c] - p_c|`` of the counted voxels are sorted in decreasing order and dotted
+    with :func:`lovasz_grad` of the ground truth in that order (the reference's ``per_image=False``: one problem over
+    the whole batch).
+
+    Args:
+        probs: ``(B, K, ...)`` class probabilities (softmax of the logits).
+        labels: ``(B, ...)`` integer class ids, ``255`` ignored.
+        mask: ``(B, ...)`` bool, voxels that count; None counts every voxel.
+        classes: ``"present"`` averages over the classes present among the counted labels, ``"all"`` over all K.
+
+    Returns:
+        Scalar loss; zero (with a gradient path) when no voxel counts.
+    """
+    _check_logits_labels(probs, labels)
+    if classes not in ("present", "all"):
+        raise ValueError(f"classes must be 'present' or 'all', got {classes!r}")
+    num_classes = probs.shape[1]
+    safe_labels, weight = _counted(labels, mask, probs.dtype)
+    keep = weight.reshape(-1) > 0
+    flat = probs.movedim(1, -1).reshape(-1, num_classes)[keep]  # (P, K) counted voxels
+    truth = F.one_hot(safe_labels.reshape(-1)[keep], num_classes).to(probs.dtype)  # (P, K)
+    errors, order = (truth - flat).abs().sort(dim=0, descending=True)
+    per_class = (errors * lovasz_grad(truth.gather(0, order))).sum(0)  # (K,)
+    chosen = truth.sum(0) > 0 if classes == "present" else torch.ones_like(per_class, dtype=torch.bool)
+    chosen = chosen.to(probs.dtype)
+    return (per_class * chosen).sum() / chosen.sum().clamp_min(1.0)
+
+
+def _neg_log_ratio(numerator: Tensor, denominator: Tensor) -> Tensor:
+    """``BCE(numerator / denominator, 1) = -ln(ratio)`` where the denominator is positive, else 0 (term skipped).
+
+    The ratio is clamped to ``[tiny, 1]`` so that a zero ratio gives a finite loss and rounding above 1 none.
+    """
+    tiny = torch.finfo(numerator.dtype).tiny
+    ratio = (numerator / denominator.clamp_min(tiny)).clamp(tiny, 1.0)
+    return torch.where(denominator > 0, -ratio.log(), torch.zeros_like(ratio))
+
+
+def scene_class_affinity_semantic(logits: Tensor, labels: Tensor, mask: Tensor | None = None) -> Tensor:
+    """MonoScene's semantic scene-class affinity loss (``sem_scal_loss``).
+
+    With ``p_i`` the softmax probability of class ``i``, over the counted voxels: precision
+    ``sum(p_i [y = i]) / sum(p_i)``, recall ``sum(p_i [y = i]) / sum([y = i])`` and specificity
+    ``sum((1 - p_i) [y != i]) / sum([y != i])``; each adds ``BCE(value, 1) = -ln(value)`` when its denominator is
+    positive. The loss averages over the classes present among the counted labels.
+
+    Args:
+        logits: ``(B, K, ...)`` unnormalised scores.
+        labels: ``(B, ...)`` integer class ids, ``255`` ignored.
+        mask: ``(B, ...)`` bool, voxels that count; None counts every voxel.
+
+    Returns:
+        Scalar loss; zero (with a gradient path) when no voxel counts.
+    """
+    _check_logits_labels(logits, labels)
+    num_classes = logits.shape[1]
+    safe_labels, weight = _counted(labels, mask, logits.dtype)
+    probs = F.softmax(logits, dim=1).movedim(1, -1).reshape(-1, num_classes)  # (V, K)
+    weight = weight.reshape(-1, 1)
+    truth = F.one_hot(safe_labels.reshape(-1), num_classes).to(logits.dtype) * weight  # (V, K), 0 where not counted
+    others = weight - truth  # counted voxels of the other classes
+    hits = (probs * truth).sum(0)
+    per_class = (
+        _neg_log_ratio(hits, (probs * weight).sum(0))  # precision
+        + _neg_log_ratio(hits, truth.sum(0))  # recall
+        + _neg_log_ratio(((1 - probs) * others).sum(0), others.sum(0))  # specificity
+    )
+    present = (truth.sum(0) > 0).to(logits.dtype)
+    return (per_class * present).sum() / present.sum().clamp_min(1.0)
+
+
+def scene_class_affinity_geometric(
+    logits: Tensor, labels: Tensor, free_index: int, mask: Tensor | None = None
+) -> Tensor:
+    """MonoScene's geometric scene-class affinity loss (``geo_scal_loss``): occupied vs free.
+
+    With ``q = 1 - p_free`` the probability of being occupied and ``o = [y != free]``, over the counted voxels:
+    ``-ln`` of precision ``sum(q o) / sum(q)``, recall ``sum(q o) / sum(o)`` and specificity
+    ``sum(p_free (1 - o)) / sum(1 - o)``, summed; a term with a zero denominator is skipped.
+
+    Args:
+        logits: ``(B, K, ...)`` unnormalised scores.
+        labels: ``(B, ...)`` integer class ids, ``255`` ignored.
+        free_index: class id of free space (Occ3D: 17; SurroundOcc and MonoScene: 0).
+        mask: ``(B, ...)`` bool, voxels that count; None counts every voxel.
+
+    Returns:
+        Scalar loss; zero (with a gradient path) when no voxel counts.
+    """
+    _check_logits_labels(logits, labels)
+    safe_labels, weight = _counted(labels, mask, logits.dtype)
+    free_prob = F.softmax(logits, dim=1)[:, free_index]  # (B, ...)
+    occupied = (safe_labels != free_index).to(logits.dtype) * weight
+    free = weight - occupied
+    hits = ((1 - free_prob) * occupied).sum()
+    return (
+        _neg_log_ratio(hits, ((1 - free_prob) * weight).sum())  # precision
+        + _neg_log_ratio(hits, occupied.sum())  # recall
+        + _neg_log_ratio((free_prob * free).sum(), free.sum())  # specificity
+    )
+
+
+def _num_bins(bins: Sequence[float]) -> int:
+    """Bins of ``(min, max, step)``, as many as ``arange(min, max, step)`` has (robust to float noise)."""
+    low, high, step = bins
+    if step <= 0 or high <= low:
+        raise ValueError(f"bins must be (min, max, step) with min < max and step > 0, got {tuple(bins)}")
+    return math.ceil((high - low) / step - 1e-6)
+
+
+def _binned_bce(probs: Tensor, values: Tensor, valid: Tensor, bins: Sequence[float]) -> Tensor:
+    """BCE of ``probs (B, N, D, h, w)`` against the one-hot bin of ``values (B, N, h, w)``, summed over ``D`` and
+    averaged over the pixels that are ``valid`` and whose value lies in ``[min, max)``."""
+    if probs.dim() != 5 or probs.shape[:2] + probs.shape[3:] != values.shape:
+        raise ValueError(f"probs (B, N, D, h, w) and targets (B, N, h, w) disagree: {probs.shape} vs {values.shape}")
+    num_bins = _num_bins(bins)
+    if probs.shape[2] != num_bins:
+        raise ValueError(f"bins {tuple(bins)} give {num_bins} bins but probs have {probs.shape[2]}")
+    low, high, step = bins
+    index = torch.floor((values - low) / step)
+    # NaN fails every comparison, so pixels without a value drop out here as well.
+    valid = valid & (values >= low) & (values < high) & (index >= 0) & (index < num_bins)
+    index = torch.where(valid, index, torch.zeros_like(index)).long()
+    # Half-precision logs lose the small probabilities that carry the loss: compute in float32 at least.
+    probs = probs.to(torch.promote_types(probs.dtype, torch.float32))
+    target = F.one_hot(index, num_bins).movedim(-1, 2).to(probs.dtype)  # (B, N, D, h, w)
+    tiny = torch.finfo(probs.dtype).tiny
+    # Clamped before the log so that saturated probabilities (exactly 0 or 1) give a finite loss and gradient.
+    bce = -(target * probs.clamp_min(tiny).log() + (1 - target) * (1 - probs).clamp_min(tiny).log())
+    per_pixel = torch.where(valid, bce.sum(2), torch.zeros_like(bce[:, :, 0]))
+    return per_pixel.sum() / valid.sum().clamp_min(1).to(probs.dtype)
+
+
+def depth_bce(depth_probs: Tensor, depth_gt: Tensor, bins: Sequence[float]) -> Tensor:
+    """BEVDepth's depth loss: binary cross-entropy of depth-bin probabilities against the LiDAR depth's bin.
+
+    A pixel with depth ``d`` in ``[min, max)`` targets the one-hot of bin ``floor((d - min) / step)``; the BCE is
+    summed over the bins and averaged over such pixels (BEVDepth: ``sum / max(1, num_valid)``).
+
+    Args:
+        depth_probs: ``(B, N, D, h, w)`` softmax probabilities over the depth bins.
+        depth_gt: ``(B, N, h, w)`` LiDAR depth in metres (e.g. :func:`occkit.data.lidar_maps.depth_map`); 0 or
+            non-finite: no LiDAR.
+        bins: ``(min, max, step)`` of the depth bins, as the LSS config (e.g. ``(1.0, 45.0, 1.0)``: 44 bins).
+
+    Returns:
+        Scalar loss; zero (with a gradient path) when no pixel is valid.
+    """
+    valid = torch.isfinite(depth_gt) & (depth_gt > 0)
+    return _binned_bce(depth_probs, depth_gt, valid, bins)
+
+
+def height_bce(height_probs: Tensor, height_gt: Tensor, bins: Sequence[float]) -> Tensor:
+    """Height loss of DHD and DA-Occ's HeightNet: :func:`depth_bce` on height bins.
+
+    Height 0 is the ground and valid here; pixels without LiDAR are NaN (as
+    :func:`occkit.data.lidar_maps.height_map` gives), and every non-finite height is skipped.
+
+    Args:
+        height_probs: ``(B, N, Z, h, w)`` softmax probabilities over the height bins.
+        height_gt: ``(B, N, h, w)`` ego-frame height in metres, NaN where no LiDAR.
+        bins: ``(min, max, step)`` of the height bins (e.g. ``(-1.0, 5.4, 0.4)``: 16 bins).
+
+    Returns:
+        Scalar loss; zero (with a gradient path) when no pixel is valid.
+    """
+    return _binned_bce(height_probs, height_gt, torch.isfinite(height_gt), bins)

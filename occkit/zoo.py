@@ -30,8 +30,14 @@ def _daocc_classes() -> tuple[type, type]:
     return DAOccConfig, DAOcc
 
 
+def _flashocc_classes() -> tuple[type, type]:
+    from occkit.models.flashocc import FlashOcc, FlashOccConfig
+
+    return FlashOccConfig, FlashOcc
+
+
 #: architecture name -> () -> (config class, model class); imported lazily so ``occkit --help`` stays light.
-ARCHITECTURES: dict[str, Callable[[], tuple[type, type]]] = {"daocc": _daocc_classes}
+ARCHITECTURES: dict[str, Callable[[], tuple[type, type]]] = {"daocc": _daocc_classes, "flashocc": _flashocc_classes}
 
 
 # ------------------------------------------------------------------------------------------------ DAOcc entries
@@ -99,11 +105,56 @@ def _daocc_tiny() -> Any:
     )  # fmt: skip
 
 
+# --------------------------------------------------------------------------------------------- FlashOcc entries
+def _flashocc_m0() -> Any:
+    """FlashOcc M0: ResNet-50 C4/C5 + FPN at 256 x 704, 44 depth bins, 64 x 200 x 200 BEV, 128-channel C2H head;
+    31.95 mIoU, 39.94 M parameters."""
+    config_class, _ = _flashocc_classes()
+    return config_class()
+
+
+def _flashocc_m1() -> Any:
+    """FlashOcc M1: M0 with 88 depth bins (0.5 m) and a 256-channel BEV neck and head; 32.08 mIoU, 44.74 M
+    parameters."""
+    from occkit.models.heads.occupancy import OccupancyHeadConfig
+    from occkit.models.view_transform.lss import LSSConfig
+
+    cfg = _flashocc_m0()
+    return dataclasses.replace(
+        cfg,
+        lss=LSSConfig(depth_range=(1.0, 45.0, 0.5)),
+        bev=dataclasses.replace(cfg.bev, neck_channels=256),
+        occupancy=OccupancyHeadConfig(in_channels=256, hidden_channels=256),
+    )
+
+
+def _flashocc_tiny() -> Any:
+    """FlashOcc's architecture scaled down for CPUs: ResNet-18 (one block per stage) C4/C5 at 128 x 352, 22 depth
+    bins, 16 context channels, narrow BEV encoder; the Occ3D output grid is unchanged."""
+    from occkit.models.bev_encoder import BevEncoderConfig
+    from occkit.models.heads.occupancy import OccupancyHeadConfig
+    from occkit.models.image_encoder import ImageEncoderConfig
+    from occkit.models.view_transform.lss import LSSConfig
+
+    config_class, _ = _flashocc_classes()
+    return config_class(
+        image=ImageEncoderConfig(depth=18, blocks=(1, 1, 1, 1), out_stages=(3, 4), norm_eval=False, neck="fpn",
+                                 neck_channels=64),
+        lss=LSSConfig(image_size=(128, 352), depth_range=(1.0, 45.0, 2.0), in_channels=64, context_channels=16),
+        bev=BevEncoderConfig(in_channels=16, strides=(2, 2, 2), channels=(32, 64, 128), blocks=(1, 1, 1),
+                             neck_channels=32, neck_extra_upsample=2),
+        occupancy=OccupancyHeadConfig(in_channels=32, hidden_channels=32),
+    )  # fmt: skip
+
+
 _ZOO: dict[str, tuple[str, Callable[[], Any]]] = {
     "daocc": ("daocc", _daocc),
     "daocc_lidar": ("daocc", _daocc_lidar),
     "daocc_surroundocc": ("daocc", _daocc_surroundocc),
     "daocc_tiny": ("daocc", _daocc_tiny),
+    "flashocc_m0": ("flashocc", _flashocc_m0),
+    "flashocc_m1": ("flashocc", _flashocc_m1),
+    "flashocc_tiny": ("flashocc", _flashocc_tiny),
 }
 
 

@@ -64,3 +64,13 @@ def test_pretrained_weights_load_from_a_local_file(tmp_path):
 def test_bad_depth_is_a_clear_error():
     with pytest.raises(ValueError, match="depth must be one of"):
         ResNetBackbone(ImageEncoderConfig(depth=42))
+
+
+def test_flashocc_fpn_on_c4_c5_gives_stride_16():
+    cfg = ImageEncoderConfig(out_stages=(3, 4), neck="fpn", norm_eval=False)
+    encoder = ImageEncoder(cfg).eval()
+    assert encoder.stride == 16
+    # CustomFPN: laterals 1024->256 and 2048->256 and one 3x3 256->256, all with biases.
+    assert count_parameters(encoder.neck) == (1024 * 256 + 256) + (2048 * 256 + 256) + (256 * 256 * 9 + 256)
+    with torch.no_grad():
+        assert tuple(encoder(torch.zeros(1, 1, 3, 256, 704)).shape) == (1, 1, 256, 16, 44)

@@ -1,8 +1,13 @@
-"""Image encoder: a torchvision ResNet and BEVFusion's LSS-FPN neck, multi-camera images -> one feature map.
+"""Image encoder: a torchvision ResNet and an FPN-style neck, multi-camera images -> one feature map.
 
-DAOcc (BEVFusion fork): ResNet-50 C3..C5 (512, 1024, 2048 channels at strides 8, 16, 32) with frozen BatchNorm
-statistics, then ``GeneralizedLSSFPN``: top-down, each level upsampled (bilinear) onto the next finer one,
-concatenated with it and mixed by a 1x1 and a 3x3 conv, giving 256 channels at stride 8 (32 x 88 at 256 x 704).
+Two necks, as the references use them:
+
+* ``lss_fpn`` (DAOcc, BEVFusion's ``GeneralizedLSSFPN``): ResNet-50 C3..C5 (512, 1024, 2048 channels at strides 8,
+  16, 32) with frozen BatchNorm statistics; top-down, each level upsampled (bilinear) onto the next finer one,
+  concatenated with it and mixed by a 1x1 and a 3x3 conv-BN-ReLU: 256 channels at stride 8 (32 x 88 at 256 x 704).
+* ``fpn`` (FlashOcc, BEVDet's ``CustomFPN``): C4 + C5, 1x1 lateral convs, nearest-neighbour top-down addition and
+  one 3x3 output conv (biases, no normalisation) on the finest level: 256 channels at stride 16 (16 x 44).
+
 Weights are never downloaded: ``pretrained`` names a local torchvision-format state dict when a user has one.
 """
 
@@ -10,13 +15,22 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal
 
 import torch
 import torch.nn.functional as F
 import torchvision
 from torch import Tensor, nn
 
-__all__ = ["ImageEncoderConfig", "ResNetBackbone", "LSSFPN", "ImageEncoder", "load_state_dict_file", "conv_bn_relu"]
+__all__ = [
+    "ImageEncoderConfig",
+    "ResNetBackbone",
+    "LSSFPN",
+    "FPN",
+    "ImageEncoder",
+    "load_state_dict_file",
+    "conv_bn_relu",
+]
 
 _RESNETS = {18: "resnet18", 34: "resnet34", 50: "resnet50", 101: "resnet101"}
 
@@ -37,8 +51,10 @@ class ImageEncoderConfig:
     """Keep BatchNorm statistics frozen (eval mode) during training, as the references do for pretrained backbones."""
     pretrained: str | None = None
     """Local torchvision-format ResNet state dict (``.pth`` or ``.safetensors``); None trains from scratch."""
+    neck: Literal["lss_fpn", "fpn"] = "lss_fpn"
+    """``lss_fpn``: concat + 1x1 + 3x3 with BatchNorm (DAOcc); ``fpn``: add + 3x3 without (FlashOcc, DA-Occ)."""
     neck_channels: int = 256
-    """Channels of the LSS-FPN output."""
+    """Channels of the neck's output."""
 
 
 def conv_bn_relu(in_channels: int, out_channels: int, kernel_size: int, stride: int = 1) -> nn.Sequential:
@@ -171,13 +187,34 @@ class LSSFPN(nn.Module):
         return fused
 
 
+class FPN(nn.Module):
+    """BEVDet's ``CustomFPN`` with one output: 1x1 laterals, top-down nearest upsampling + add, 3x3 on the finest.
+
+    ``forward(levels) -> (M, out_channels, H_0, W_0)`` at the finest level's resolution.
+    """
+
+    def __init__(self, in_channels: tuple[int, ...], out_channels: int) -> None:
+        super().__init__()
+        self.lateral = nn.ModuleList(nn.Conv2d(c, out_channels, 1) for c in in_channels)
+        self.output = nn.Conv2d(out_channels, out_channels, 3, padding=1)
+        self.out_channels = out_channels
+
+    def forward(self, levels: list[Tensor]) -> Tensor:
+        fused = self.lateral[-1](levels[-1])
+        for level in range(len(levels) - 2, -1, -1):
+            lateral = self.lateral[level](levels[level])
+            fused = lateral + F.interpolate(fused, size=lateral.shape[-2:], mode="nearest")
+        return self.output(fused)
+
+
 class ImageEncoder(nn.Module):
     """Multi-camera images ``(B, N, 3, H, W)`` -> features ``(B, N, C, H / s, W / s)``, ``s`` the finest stride."""
 
     def __init__(self, cfg: ImageEncoderConfig) -> None:
         super().__init__()
         self.backbone = ResNetBackbone(cfg)
-        self.neck = LSSFPN(self.backbone.out_channels, cfg.neck_channels)
+        neck = {"lss_fpn": LSSFPN, "fpn": FPN}[cfg.neck]
+        self.neck = neck(self.backbone.out_channels, cfg.neck_channels)
         self.out_channels = cfg.neck_channels
         self.stride = self.backbone.strides[0]
 

@@ -7,13 +7,11 @@ cross-entropy, or without the mask the drop-free cross-entropy (DAOcc), optional
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
-import torch
 from torch import Tensor, nn
 
-from occkit.losses import drop_free_cross_entropy, masked_cross_entropy
+from occkit.losses import class_weights_from_frequencies, drop_free_cross_entropy, masked_cross_entropy
 
 __all__ = ["OccupancyHeadConfig", "OccupancyHead", "OCC3D_CLASS_FREQUENCIES"]
 
@@ -60,7 +58,7 @@ class OccupancyHead(nn.Module):
         if cfg.class_balance:
             if cfg.num_classes != len(OCC3D_CLASS_FREQUENCIES):
                 raise ValueError(f"class_balance uses Occ3D's 18 class frequencies, not {cfg.num_classes} classes")
-            weights = torch.tensor([1.0 / math.log(f + 0.001) for f in OCC3D_CLASS_FREQUENCIES])
+            weights = class_weights_from_frequencies(OCC3D_CLASS_FREQUENCIES)
             self.register_buffer("class_weights", weights, persistent=False)
         else:
             self.class_weights = None
