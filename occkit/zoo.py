@@ -1,8 +1,8 @@
 """Model zoo: names -> configs -> models, plain Python, no registry beyond this table.
 
     >>> from occkit import zoo
-    >>> zoo.names()[:2]
-    ['daocc', 'daocc_lidar']
+    >>> zoo.names()[:3]
+    ['da_occ', 'da_occ_tiny', 'daocc']
     >>> model = zoo.build("daocc_tiny")
 
 Every entry has a YAML twin in ``configs/NAME.yaml`` (``architecture`` + ``model``), written by
@@ -36,8 +36,18 @@ def _flashocc_classes() -> tuple[type, type]:
     return FlashOccConfig, FlashOcc
 
 
+def _da_occ_classes() -> tuple[type, type]:
+    from occkit.models.da_occ import DirectionAwareOcc, DirectionAwareOccConfig
+
+    return DirectionAwareOccConfig, DirectionAwareOcc
+
+
 #: architecture name -> () -> (config class, model class); imported lazily so ``occkit --help`` stays light.
-ARCHITECTURES: dict[str, Callable[[], tuple[type, type]]] = {"daocc": _daocc_classes, "flashocc": _flashocc_classes}
+ARCHITECTURES: dict[str, Callable[[], tuple[type, type]]] = {
+    "daocc": _daocc_classes,
+    "flashocc": _flashocc_classes,
+    "da_occ": _da_occ_classes,
+}
 
 
 # ------------------------------------------------------------------------------------------------ DAOcc entries
@@ -147,6 +157,37 @@ def _flashocc_tiny() -> Any:
     )  # fmt: skip
 
 
+# ---------------------------------------------------------------------------------------------- DA-Occ entries
+def _da_occ() -> Any:
+    """DA-Occ, single frame: ResNet-50 at 256 x 704, camera-aware DepthNet and HeightNet (two vertical DACs),
+    depth-score BEV plus a 16 x 32 x 32 height-score volume, DAC decoders; 34.38 mIoU in the paper."""
+    config_class, _ = _da_occ_classes()
+    return config_class()
+
+
+def _da_occ_tiny() -> Any:
+    """DA-Occ's architecture scaled down for CPUs: ResNet-18 (one block per stage) C4/C5 at 128 x 352, 22 depth
+    bins, 32-channel depth and height nets without ASPP, narrow BEV encoder; Occ3D output grid unchanged."""
+    from occkit.models.bev_encoder import BevEncoderConfig
+    from occkit.models.heads.depth import DepthNetConfig
+    from occkit.models.heads.occupancy import OccupancyHeadConfig
+    from occkit.models.image_encoder import ImageEncoderConfig
+
+    config_class, _ = _da_occ_classes()
+    net = {"in_channels": 64, "mid_channels": 32, "residual_blocks": 2, "feature_height": 8, "aspp": False}
+    return config_class(
+        image=ImageEncoderConfig(depth=18, blocks=(1, 1, 1, 1), out_stages=(3, 4), norm_eval=False, neck="fpn",
+                                 neck_channels=64),
+        depth_range=(1.0, 45.0, 2.0),
+        depth_net=DepthNetConfig(bins=22, context_channels=16, **net),
+        height_net=DepthNetConfig(bins=16, context_channels=0, dac_blocks=2, **net),
+        bev=BevEncoderConfig(in_channels=16, strides=(2, 2, 2), channels=(32, 64, 128), blocks=(1, 1, 1),
+                             neck_channels=32, neck_extra_upsample=2),
+        fusion_channels=32,
+        occupancy=OccupancyHeadConfig(in_channels=32, hidden_channels=32),
+    )  # fmt: skip
+
+
 _ZOO: dict[str, tuple[str, Callable[[], Any]]] = {
     "daocc": ("daocc", _daocc),
     "daocc_lidar": ("daocc", _daocc_lidar),
@@ -155,6 +196,8 @@ _ZOO: dict[str, tuple[str, Callable[[], Any]]] = {
     "flashocc_m0": ("flashocc", _flashocc_m0),
     "flashocc_m1": ("flashocc", _flashocc_m1),
     "flashocc_tiny": ("flashocc", _flashocc_tiny),
+    "da_occ": ("da_occ", _da_occ),
+    "da_occ_tiny": ("da_occ", _da_occ_tiny),
 }
 
 

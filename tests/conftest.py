@@ -25,9 +25,11 @@ def make_batch(
     num_points: int = 3000,
     seed: int = 0,
     occupancy: bool = True,
+    depth_stride: int = 0,
 ) -> Batch:
     """A batch with ``num_cameras`` cameras spread around the car, random points in +-40 m, ten boxes per sample
-    and labels that follow simple rules (ground low, a vehicle class around three of the boxes, free above)."""
+    and labels that follow simple rules (ground low, a vehicle class around three of the boxes, free above); with
+    ``depth_stride``, LiDAR-like depth (0 = none) and height (NaN = none) maps at that feature stride."""
     generator = torch.Generator().manual_seed(seed)
     height, width = image_size
     focal = width / 2
@@ -75,6 +77,12 @@ def make_batch(
         batch.voxel_semantics = labels
         batch.mask_camera = torch.rand(batch_size, *OCC_SHAPE, generator=generator) > 0.3
         batch.mask_lidar = torch.ones(batch_size, *OCC_SHAPE, dtype=torch.bool)
+    if depth_stride:
+        shape = (batch_size, num_cameras, height // depth_stride, width // depth_stride)
+        batch.depth_maps = (torch.rand(shape, generator=generator) * 50).where(
+            torch.rand(shape, generator=generator) > 0.3, torch.tensor(0.0))
+        batch.height_maps = (torch.rand(shape, generator=generator) * 6.4 - 1).where(
+            torch.rand(shape, generator=generator) > 0.3, torch.tensor(float("nan")))
     return batch
 
 
