@@ -270,6 +270,149 @@ def _write_json(path: Path, payload: dict) -> None:
     print(f"wrote {path}")
 
 
+# ----------------------------------------------------------------------------------------------------- train
+def _add_train(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--config", required=True, help="experiment YAML (configs/NAME.yaml) or a zoo name")
+    parser.add_argument("--out", type=Path, required=True, help="run folder: checkpoints, logs, plots")
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                        help="override a config value, e.g. --set train.lr=2e-4 (repeatable)")
+    parser.add_argument("--resume", default=None, metavar="auto|CKPT",
+                        help="auto: continue from the newest checkpoint in --out; or a checkpoint file")
+    parser.add_argument("--device", default=None, help="cpu, cuda, cuda:1 (default: CUDA when available)")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar (logs still written)")
+
+
+def _experiment(config: str, overrides: list[str]):
+    from occkit import zoo
+    from occkit.engine.experiment import experiment_from_dict, load_experiment
+
+    path = Path(config)
+    if not path.exists() and config in zoo.names():
+        return experiment_from_dict(zoo.experiment(config).to_dict(), f"zoo entry {config}", overrides)
+    if not path.exists():
+        raise FileNotFoundError(f"config {config} does not exist (zoo names: {', '.join(zoo.names())})")
+    return load_experiment(path, overrides)
+
+
+def _run_train(args: argparse.Namespace) -> int:
+    from occkit.engine.train import train
+
+    experiment = _experiment(args.config, args.set)
+    data_root = Path(experiment.data.root)
+    if not data_root.is_dir():
+        raise FileNotFoundError(f"data root {data_root} does not exist (set data.root, or write a synthetic dataset "
+                                f"with `occkit sim --out {data_root}`)")
+    result = train(experiment, args.out, resume=args.resume, progress=not args.no_progress, device=args.device)
+    summary = {"out": str(result.out), "steps": result.steps, "seconds": round(result.seconds, 1),
+               "best_miou": result.best_miou, "metrics": result.metrics}  # fmt: skip
+    _write_json(args.out / "summary.json", summary)
+    if result.metrics is not None:
+        print(f"trained {result.steps} steps in {result.seconds:.0f} s: val mIoU {100 * result.metrics['miou']:.2f}, "
+              f"IoU {100 * result.metrics['iou']:.2f}; run folder {args.out}")
+    return 0
+
+
+# ----------------------------------------------------------------------------------------------------- eval
+def _add_eval(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--ckpt", type=Path, required=True, help="checkpoint (best.pt, step-*.pt)")
+    parser.add_argument("--data", type=Path, default=None, help="dataset root (default: the one it was trained on)")
+    parser.add_argument("--split", default=None, help="split to score (default: the run's validation split)")
+    parser.add_argument("--out", type=Path, required=True, help="folder for metrics.json, metrics.md and plots")
+    parser.add_argument("--no-rayiou", action="store_true", help="skip RayIoU (mIoU and IoU only)")
+    parser.add_argument("--save-predictions", action="store_true", help="also write <token>.npz predictions")
+    parser.add_argument("--batch-size", type=int, default=1)
+    parser.add_argument("--workers", type=int, default=2, help="data loading processes")
+    parser.add_argument("--device", default=None, help="cpu, cuda (default: CUDA when available)")
+
+
+def _device(name: str | None) -> str:
+    import torch
+
+    return name or ("cuda" if torch.cuda.is_available() else "cpu")
+
+
+def _run_eval(args: argparse.Namespace) -> int:
+    from tqdm import tqdm
+
+    from occkit.engine.evaluate import dataset_ray_origins, evaluate_model, evaluation_dataset, load_trained
+    from occkit.metrics.evaluate import markdown_table, write_report
+
+    model, experiment = load_trained(args.ckpt, _device(args.device))
+    dataset = evaluation_dataset(experiment, args.data, args.split or experiment.train.val_split)
+    _prepare_out(args.out)
+    predictions = None
+    if args.save_predictions:
+        predictions = args.out / "predictions"
+        predictions.mkdir(exist_ok=True)
+    origins = None if args.no_rayiou else dataset_ray_origins(dataset)
+    with tqdm(total=len(dataset), unit="frame", desc="eval") as bar:
+        result = evaluate_model(model, dataset, args.batch_size, args.workers, predictions=predictions,
+                                ray_origins=origins, progress=bar.update)  # fmt: skip
+    result.update(mask="camera", checkpoint=str(args.ckpt), split=dataset.config.split, root=dataset.config.root)
+    print(markdown_table(result), end="")
+    for path in write_report(result, args.out).values():
+        print(f"wrote {path}")
+    return 0
+
+
+def _prepare_out(out: Path) -> None:
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        (out / ".write-test").write_text("")
+        (out / ".write-test").unlink()
+    except OSError as error:
+        raise PermissionError(f"cannot write to --out {out}: {error.strerror}") from error
+
+
+# ----------------------------------------------------------------------------------------------------- predict
+def _add_predict(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--ckpt", type=Path, required=True, help="checkpoint (best.pt, step-*.pt)")
+    parser.add_argument("--data", type=Path, required=True, help="dataset root (nuScenes layout)")
+    parser.add_argument("--split", default="val", help="split to predict: train, val, test, all, ... (default val)")
+    parser.add_argument("--out", type=Path, required=True, help="folder for <token>.npz files (Occ3D format)")
+    parser.add_argument("--batch-size", type=int, default=1)
+    parser.add_argument("--workers", type=int, default=2, help="data loading processes")
+    parser.add_argument("--device", default=None, help="cpu, cuda (default: CUDA when available)")
+
+
+def _run_predict(args: argparse.Namespace) -> int:
+    import torch
+    from tqdm import tqdm
+
+    from occkit.engine.evaluate import evaluation_dataset, load_trained, split_loader, write_prediction
+
+    device = _device(args.device)
+    model, experiment = load_trained(args.ckpt, device)
+    dataset = evaluation_dataset(experiment, args.data, args.split, labels=False)
+    _prepare_out(args.out)
+    with torch.no_grad(), tqdm(total=len(dataset), unit="frame", desc="predict") as bar:
+        for batch in split_loader(dataset, args.batch_size, args.workers, None):
+            semantics = model.predict(batch.to(device)).semantics.cpu().numpy()
+            for token, grid in zip(batch.tokens, semantics, strict=True):
+                write_prediction(args.out / f"{token}.npz", grid)
+            bar.update(len(batch))
+    print(f"wrote {len(dataset)} predictions to {args.out} (score them with occkit eval-preds)")
+    return 0
+
+
+# ----------------------------------------------------------------------------------------------------- demo
+def _add_demo(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--out", type=Path, default=Path("runs/demo"), help="demo folder (default runs/demo)")
+    parser.add_argument("--data", type=Path, default=Path("data/demo"),
+                        help="synthetic dataset, written first if absent (default data/demo)")
+    parser.add_argument("--steps", type=int, default=None,
+                        help="optimizer steps per model (default: the demo's, about 7 minutes each on 2 cores)")
+
+
+def _run_demo(args: argparse.Namespace) -> int:
+    from occkit.engine.demo import DEMO_MODELS, run_demo
+
+    models = None if args.steps is None else {name: args.steps for name in DEMO_MODELS}
+    report = run_demo(args.out, args.data, models)
+    print(f"report: {report}")
+    return 0
+
+
 Command = tuple[str, Callable[[argparse.ArgumentParser], None], Callable[[argparse.Namespace], int]]
 
 COMMANDS: dict[str, Command] = {
@@ -285,6 +428,13 @@ COMMANDS: dict[str, Command] = {
         _add_eval_preds,
         _run_eval_preds,
     ),
+    "train": ("train a model: checkpoints, logs, plots, validation (torchrun for several processes)", _add_train,
+              _run_train),
+    "eval": ("score a checkpoint on a dataset split: mIoU, IoU, RayIoU, per-class table and plots", _add_eval,
+             _run_eval),
+    "predict": ("write Occ3D-format <token>.npz predictions of a checkpoint", _add_predict, _run_predict),
+    "demo": ("the whole system on a laptop: synthetic world, train two tiny models, evaluate, render, report",
+             _add_demo, _run_demo),
 }
 
 
@@ -312,7 +462,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130
-    except (ValueError, FileExistsError, FileNotFoundError) as error:
+    except (ValueError, FileExistsError, FileNotFoundError, PermissionError) as error:
         # Bad input: a one-line message naming the offending value or file, not a traceback.
         print(f"occkit {args.command}: error: {error}", file=sys.stderr)
         return 2

@@ -38,6 +38,7 @@ __all__ = [
     "save_config",
     "dump_yaml",
     "apply_overrides",
+    "override_dict",
     "field_docs",
 ]
 
@@ -205,6 +206,14 @@ def _set_path(data: dict, path: list[str], value: Any, override: str) -> None:
     node[path[-1]] = value
 
 
+def override_dict(data: dict, overrides: Sequence[str]) -> dict:
+    """Apply dotted ``key.sub=value`` overrides in place to the plain-dict form of a config; keys must exist."""
+    for override in overrides:
+        path, value = _parse_override(override)
+        _set_path(data, path, value, override)
+    return data
+
+
 def apply_overrides(cfg: C, overrides: Sequence[str]) -> C:
     """Return a copy of ``cfg`` with dotted ``key.sub=value`` overrides applied (values parsed as YAML).
 
@@ -212,11 +221,7 @@ def apply_overrides(cfg: C, overrides: Sequence[str]) -> C:
     """
     if not overrides:
         return cfg
-    data = to_dict(cfg)
-    for override in overrides:
-        path, value = _parse_override(override)
-        _set_path(data, path, value, override)
-    return from_dict(type(cfg), data, "config (after --set)")
+    return from_dict(type(cfg), override_dict(to_dict(cfg), overrides), "config (after --set)")
 
 
 # ----------------------------------------------------------------------------------------------- YAML files

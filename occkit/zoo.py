@@ -5,23 +5,23 @@
     ['da_occ', 'da_occ_tiny', 'daocc']
     >>> model = zoo.build("daocc_tiny")
 
-Every entry has a YAML twin in ``configs/NAME.yaml`` (``architecture`` + ``model``), written by
-:func:`config_yaml` and kept equal to the factory by a test, so a config file read with :func:`load_model_config`
-and a name given to :func:`build` mean the same model.
+Every entry has a YAML twin in ``configs/NAME.yaml``: the whole experiment (``architecture``, ``model``, ``data``,
+``train``), written by :func:`config_yaml` and kept equal to :func:`experiment` by a test, so a config file read with
+``occkit.engine.experiment.load_experiment`` and a name given to :func:`build` mean the same model.
 """
 
 from __future__ import annotations
 
 import dataclasses
 from collections.abc import Callable
-from pathlib import Path
 from typing import Any
 
 from torch import nn
 
-from occkit.config import ConfigError, dump_yaml, from_dict
+from occkit.config import ConfigError
 
-__all__ = ["names", "model_config", "build", "build_from_config", "config_yaml", "load_model_config", "ARCHITECTURES"]
+__all__ = ["names", "description", "model_config", "experiment", "build", "build_from_config", "config_yaml",
+           "ARCHITECTURES"]
 
 
 def _daocc_classes() -> tuple[type, type]:
@@ -188,16 +188,50 @@ def _da_occ_tiny() -> Any:
     )  # fmt: skip
 
 
-_ZOO: dict[str, tuple[str, Callable[[], Any]]] = {
-    "daocc": ("daocc", _daocc),
-    "daocc_lidar": ("daocc", _daocc_lidar),
-    "daocc_surroundocc": ("daocc", _daocc_surroundocc),
-    "daocc_tiny": ("daocc", _daocc_tiny),
-    "flashocc_m0": ("flashocc", _flashocc_m0),
-    "flashocc_m1": ("flashocc", _flashocc_m1),
-    "flashocc_tiny": ("flashocc", _flashocc_tiny),
-    "da_occ": ("da_occ", _da_occ),
-    "da_occ_tiny": ("da_occ", _da_occ_tiny),
+# ----------------------------------------------------------------------- data and training settings per family
+def _data(family: str, tiny: bool) -> Any:
+    """Training-split dataset settings: the paper's inputs, or the CPU demo's small ones for tiny entries."""
+    from occkit.data.dataset import CAMERAS, DatasetConfig
+    from occkit.data.transforms import ImageAugConfig
+
+    sweeps = {"daocc": 9, "daocc_lidar": 9, "flashocc": -1, "da_occ": 0}[family]
+    cameras = () if family == "daocc_lidar" else CAMERAS
+    if not tiny:
+        return DatasetConfig(cameras=cameras, sweeps=sweeps, boxes=family.startswith("daocc"), augment=True,
+                             depth_downsample=16 if family == "da_occ" else 0)  # fmt: skip
+    return DatasetConfig(
+        root="data/demo", cameras=CAMERAS, sweeps=min(sweeps, 2), boxes=family.startswith("daocc"), augment=True,
+        image_aug=ImageAugConfig(final_size=(128, 352), rotate_deg=(0.0, 0.0)),
+        depth_downsample=16 if family == "da_occ" else 0,
+    )  # fmt: skip
+
+
+def _train(family: str, tiny: bool) -> Any:
+    """The papers' schedules (DAOcc: AdamW 2e-4, clip 35, fp16; FlashOcc: 1e-4, clip 5; DA-Occ: 1e-4, wd 0.05),
+    or a short CPU schedule for tiny entries."""
+    from occkit.engine.experiment import TrainConfig
+
+    if tiny:
+        return TrainConfig(epochs=4, batch_size=2, lr=2e-3, warmup_steps=20, grad_clip=35.0, ema_decay=0.0,
+                           workers=1, val_every=0, log_every=5)  # fmt: skip
+    if family.startswith("daocc"):
+        return TrainConfig(epochs=24, batch_size=4, lr=2e-4, grad_clip=35.0, precision="fp16")
+    if family == "flashocc":
+        return TrainConfig(epochs=24, batch_size=4, lr=1e-4, grad_clip=5.0, warmup_steps=200, warmup_ratio=0.001)
+    return TrainConfig(epochs=24, batch_size=4, lr=1e-4, weight_decay=0.05, grad_clip=5.0)
+
+
+_ZOO: dict[str, tuple[str, Callable[[], Any], str]] = {
+    # name: (architecture, model factory, data/training family)
+    "daocc": ("daocc", _daocc, "daocc"),
+    "daocc_lidar": ("daocc", _daocc_lidar, "daocc_lidar"),
+    "daocc_surroundocc": ("daocc", _daocc_surroundocc, "daocc"),
+    "daocc_tiny": ("daocc", _daocc_tiny, "daocc"),
+    "flashocc_m0": ("flashocc", _flashocc_m0, "flashocc"),
+    "flashocc_m1": ("flashocc", _flashocc_m1, "flashocc"),
+    "flashocc_tiny": ("flashocc", _flashocc_tiny, "flashocc"),
+    "da_occ": ("da_occ", _da_occ, "da_occ"),
+    "da_occ_tiny": ("da_occ", _da_occ_tiny, "da_occ"),
 }
 
 
@@ -206,7 +240,7 @@ def names() -> list[str]:
     return sorted(_ZOO)
 
 
-def _entry(name: str) -> tuple[str, Callable[[], Any]]:
+def _entry(name: str) -> tuple[str, Callable[[], Any], str]:
     if name not in _ZOO:
         raise KeyError(f"unknown model {name!r}; the zoo has: {', '.join(names())}")
     return _ZOO[name]
@@ -219,8 +253,17 @@ def description(name: str) -> str:
 
 def model_config(name: str) -> tuple[str, Any]:
     """``(architecture, config)`` of a zoo entry."""
-    architecture, factory = _entry(name)
+    architecture, factory, _ = _entry(name)
     return architecture, factory()
+
+
+def experiment(name: str) -> Any:
+    """The full experiment (model, data, training) of a zoo entry, as ``configs/NAME.yaml`` holds it."""
+    from occkit.engine.experiment import Experiment
+
+    architecture, factory, family = _entry(name)
+    tiny = name.endswith("_tiny")
+    return Experiment(architecture, factory(), _data(family, tiny), _train(family, tiny))
 
 
 def build_from_config(architecture: str, cfg: Any) -> nn.Module:
@@ -237,24 +280,8 @@ def build(name: str) -> nn.Module:
 
 
 def config_yaml(name: str) -> str:
-    """The YAML text of ``configs/NAME.yaml``: a description, the architecture and the commented model config."""
-    architecture, cfg = model_config(name)
-    header = f"# {name}: {description(name)}\n# Build with occkit.zoo.build({name!r}) or load this file.\n"
-    body = dump_yaml(cfg).rstrip("\n")
-    indented = "\n".join(("  " + line) if line else line for line in body.splitlines())
-    return f"{header}architecture: {architecture}\nmodel:\n{indented}\n"
+    """The text of ``configs/NAME.yaml``: a description, then the commented experiment."""
+    from occkit.engine.experiment import experiment_yaml
 
-
-def load_model_config(path: str | Path) -> tuple[str, Any]:
-    """``(architecture, config)`` read from a model YAML; unknown keys are errors naming the file."""
-    import yaml
-
-    path = Path(path)
-    data = yaml.safe_load(path.read_text())
-    if not isinstance(data, dict) or "architecture" not in data or "model" not in data:
-        raise ConfigError(f"{path}: a model config needs the keys 'architecture' and 'model'")
-    architecture = data["architecture"]
-    if architecture not in ARCHITECTURES:
-        raise ConfigError(f"{path}: unknown architecture {architecture!r}; known: {', '.join(sorted(ARCHITECTURES))}")
-    config_class, _ = ARCHITECTURES[architecture]()
-    return architecture, from_dict(config_class, data["model"], where=str(path))
+    header = f"# {name}: {description(name)}\n# occkit train --config configs/{name}.yaml --out runs/{name}"
+    return experiment_yaml(experiment(name), header)

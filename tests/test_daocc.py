@@ -10,6 +10,7 @@ import torch
 
 from occkit import zoo
 from occkit.config import ConfigError
+from occkit.engine.experiment import load_experiment
 from occkit.models.complexity import count_macs, count_parameters
 from occkit.models.daocc import DAOcc, DAOccConfig
 from occkit.types import OccPrediction
@@ -29,7 +30,7 @@ def test_every_zoo_entry_builds_and_matches_its_yaml(name):
     assert count_parameters(model) > 0
     path = CONFIGS / f"{name}.yaml"
     assert path.read_text() == zoo.config_yaml(name), f"{path} is stale: regenerate it with scripts/write_configs.py"
-    assert zoo.load_model_config(path) == zoo.model_config(name)
+    assert load_experiment(path) == zoo.experiment(name)
 
 
 def test_shapes_at_every_stage(synthetic_batch):
@@ -129,4 +130,4 @@ def test_zoo_errors_name_the_problem(tmp_path):
     bad = tmp_path / "bad.yaml"
     bad.write_text(zoo.config_yaml("daocc_tiny").replace("fusion_channels:", "fusion_channel:"))
     with pytest.raises(ConfigError, match="fusion_channel"):
-        zoo.load_model_config(bad)
+        load_experiment(bad)

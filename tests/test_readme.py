@@ -20,7 +20,7 @@ def test_readme_opens_with_install_main_job_and_tests():
     first_block = re.search(r"```bash\n(.*?)```", README.read_text(), flags=re.S).group(1)
     commands = [line.split("#")[0].strip() for line in first_block.strip().splitlines()]
     assert commands[0] == 'pip install -e ".[dev]"'
-    assert commands[1].startswith("occkit ")
+    assert commands[1] == "occkit demo"
     assert commands[2] == "pytest"
     ci = (README.parent / ".ci" / "run").read_text()
     assert 'pip install -e ".[dev]"' in ci and "\npytest " in ci

@@ -1,0 +1,1 @@
+"""Training, evaluation and prediction: experiments, checkpoints, distributed runs, logs and the demo."""

@@ -1,0 +1,156 @@
+"""Crash-safe checkpoints: atomic writes, rolling retention, a best model, and loading without unpickling code.
+
+A run folder holds ``step-00000120.pt`` files (the last ``keep_last``), ``best.pt`` (the best validation mIoU) and
+``last.json`` naming the newest complete checkpoint. Every file is written to a temporary name in the same folder,
+flushed to disk and renamed over the target, so a run killed at any moment (SIGKILL included) leaves either the
+previous file or the new one, never a truncated one; ``last.json`` is only updated after its checkpoint is complete.
+
+Checkpoints are plain dicts of tensors, numbers and strings, loaded with ``torch.load(weights_only=True)``.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import random
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+__all__ = [
+    "FORMAT",
+    "atomic_save",
+    "save_checkpoint",
+    "load_checkpoint",
+    "latest_checkpoint",
+    "rng_state",
+    "set_rng_state",
+    "check_compatible",
+]
+
+FORMAT = "occkit-checkpoint/1"
+
+
+def _fsync_dir(folder: Path) -> None:
+    try:
+        fd = os.open(folder, os.O_RDONLY)
+    except OSError:  # some filesystems do not open folders; the rename is still atomic
+        return
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def atomic_save(payload: Any, path: str | Path) -> Path:
+    """``torch.save`` to ``path`` through a temporary file and a rename: the target is never seen half written."""
+    path = Path(path)
+    temporary = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    try:
+        with open(temporary, "wb") as handle:
+            torch.save(payload, handle)
+            handle.flush()
+            os.fsync(handle.fileno())
+        os.replace(temporary, path)
+    finally:
+        temporary.unlink(missing_ok=True)
+    _fsync_dir(path.parent)
+    return path
+
+
+def _atomic_write_text(text: str, path: Path) -> None:
+    temporary = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    with open(temporary, "w") as handle:
+        handle.write(text)
+        handle.flush()
+        os.fsync(handle.fileno())
+    os.replace(temporary, path)
+    _fsync_dir(path.parent)
+
+
+def rng_state() -> dict[str, Any]:
+    """Every random generator a training step may draw from, as tensors and lists (``weights_only``-loadable)."""
+    kind, keys, position, has_gauss, cached = np.random.get_state()
+    state = {
+        "torch": torch.get_rng_state(),
+        "numpy": {"kind": kind, "keys": torch.from_numpy(keys.astype(np.int64)), "position": int(position),
+                  "has_gauss": int(has_gauss), "cached": float(cached)},
+        "python": [list(part) if isinstance(part, tuple) else part for part in random.getstate()],
+    }  # fmt: skip
+    if torch.cuda.is_available():
+        state["cuda"] = torch.cuda.get_rng_state_all()
+    return state
+
+
+def set_rng_state(state: dict[str, Any]) -> None:
+    """Restore what :func:`rng_state` captured."""
+    torch.set_rng_state(state["torch"])
+    numpy = state["numpy"]
+    np.random.set_state((numpy["kind"], numpy["keys"].numpy().astype(np.uint32), numpy["position"],
+                         numpy["has_gauss"], numpy["cached"]))  # fmt: skip
+    version, internal, gauss = state["python"]
+    random.setstate((version, tuple(internal), gauss))
+    if "cuda" in state and torch.cuda.is_available():
+        torch.cuda.set_rng_state_all(state["cuda"])
+
+
+def save_checkpoint(folder: str | Path, payload: dict[str, Any], step: int, keep_last: int) -> Path:
+    """Write ``step-XXXXXXXX.pt``, point ``last.json`` at it, then delete rolling checkpoints beyond ``keep_last``."""
+    folder = Path(folder)
+    path = atomic_save({"format": FORMAT, **payload}, folder / f"step-{step:08d}.pt")
+    _atomic_write_text(json.dumps({"checkpoint": path.name, "step": step}) + "\n", folder / "last.json")
+    rolling = sorted(folder.glob("step-*.pt"))
+    for old in rolling[:-keep_last]:
+        old.unlink(missing_ok=True)
+    return path
+
+
+def latest_checkpoint(folder: str | Path) -> Path | None:
+    """The checkpoint ``last.json`` names, or None for a folder without one."""
+    pointer = Path(folder) / "last.json"
+    if not pointer.is_file():
+        return None
+    try:
+        name = json.loads(pointer.read_text())["checkpoint"]
+    except (ValueError, KeyError) as error:
+        raise ValueError(f"{pointer} is not a checkpoint pointer ({error})") from error
+    path = Path(folder) / name
+    if not path.is_file():
+        raise FileNotFoundError(f"{pointer} names {name}, which does not exist")
+    return path
+
+
+def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") -> dict[str, Any]:
+    """Load a checkpoint with ``weights_only=True``; anything that is not an occkit checkpoint is a clear error."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"checkpoint {path} does not exist")
+    try:
+        payload = torch.load(path, map_location=map_location, weights_only=True)
+    except Exception as error:  # torch raises several types for corrupt or foreign files
+        raise ValueError(f"{path} is not a readable checkpoint: {type(error).__name__}: {error}") from error
+    if not isinstance(payload, dict) or payload.get("format") != FORMAT:
+        raise ValueError(f"{path} is not an occkit checkpoint (no '{FORMAT}' format marker)")
+    return payload
+
+
+def check_compatible(payload: dict[str, Any], architecture: str, model_config: dict, path: str | Path) -> None:
+    """Raise ``ValueError`` naming the first difference when a checkpoint holds another model or config."""
+    if payload["architecture"] != architecture:
+        raise ValueError(f"{path} holds a {payload['architecture']} model, not {architecture}")
+    saved = payload["experiment"]["model"]
+    differences = _differences(saved, model_config, "model")
+    if differences:
+        raise ValueError(f"{path} was trained with another model config: {differences[0]}"
+                         + (f" (and {len(differences) - 1} more differences)" if len(differences) > 1 else ""))
+
+
+def _differences(saved: Any, current: Any, key: str) -> list[str]:
+    if isinstance(saved, dict) and isinstance(current, dict):
+        found = []
+        for name in sorted(set(saved) | set(current)):
+            found += _differences(saved.get(name), current.get(name), f"{key}.{name}")
+        return found
+    return [] if saved == current else [f"{key} is {saved!r} in the checkpoint but {current!r} here"]

@@ -1,0 +1,106 @@
+"""torch.distributed for ``torchrun``: process group setup, sharded samplers and rank-0 helpers.
+
+``torchrun --nproc-per-node N -m occkit train ...`` starts N processes with ``RANK``, ``WORLD_SIZE`` and
+``LOCAL_RANK`` set; :func:`setup` joins them into one group (NCCL on CUDA, gloo on CPU). A plain ``occkit train``
+runs as a group of one without initialising anything.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Iterator
+from dataclasses import dataclass
+
+import torch
+import torch.distributed as dist
+
+__all__ = ["Context", "setup", "teardown", "EpochSampler", "barrier", "broadcast_object"]
+
+
+@dataclass(frozen=True)
+class Context:
+    """Where this process stands in the run."""
+
+    rank: int
+    world_size: int
+    device: torch.device
+
+    @property
+    def is_main(self) -> bool:
+        return self.rank == 0
+
+    @property
+    def distributed(self) -> bool:
+        return self.world_size > 1
+
+
+def setup(device: str | None = None) -> Context:
+    """Join the process group when launched by torchrun; choose the device (``cuda:LOCAL_RANK`` when CUDA exists)."""
+    world_size = int(os.environ.get("WORLD_SIZE", "1"))
+    rank = int(os.environ.get("RANK", "0"))
+    local_rank = int(os.environ.get("LOCAL_RANK", "0"))
+    if device is None:
+        device = f"cuda:{local_rank}" if torch.cuda.is_available() else "cpu"
+    target = torch.device(device)
+    if target.type == "cuda":
+        torch.cuda.set_device(target)
+    if world_size > 1 and not dist.is_initialized():
+        dist.init_process_group(backend="nccl" if target.type == "cuda" else "gloo")
+    return Context(rank=rank, world_size=world_size, device=target)
+
+
+def teardown() -> None:
+    if dist.is_available() and dist.is_initialized():
+        dist.destroy_process_group()
+
+
+def barrier() -> None:
+    if dist.is_available() and dist.is_initialized():
+        dist.barrier()
+
+
+def broadcast_object(value, src: int = 0):
+    """``value`` of rank ``src`` on every rank (itself when not distributed)."""
+    if not (dist.is_available() and dist.is_initialized()):
+        return value
+    holder = [value]
+    dist.broadcast_object_list(holder, src=src)
+    return holder[0]
+
+
+class EpochSampler(torch.utils.data.Sampler[int]):
+    """Deterministic per-epoch order, sharded over ranks, that can start part-way through an epoch.
+
+    Training: a permutation seeded by ``(seed, epoch)``, cut to a whole number of global batches (every rank takes
+    the same number of steps), rank ``r`` taking every ``world``-th index from ``r``; ``skip_batches`` drops the
+    first batches of this rank's share, so a resumed run continues exactly where it stopped. Evaluation
+    (``shuffle=False``): every index once, in order, split over ranks without padding.
+    """
+
+    def __init__(self, size: int, batch_size: int, rank: int = 0, world_size: int = 1, shuffle: bool = True,
+                 seed: int = 0) -> None:  # fmt: skip
+        self.size, self.batch_size, self.rank, self.world_size = size, batch_size, rank, world_size
+        self.shuffle, self.seed = shuffle, seed
+        self.epoch, self.skip_batches = 0, 0
+
+    def set_epoch(self, epoch: int, skip_batches: int = 0) -> None:
+        self.epoch, self.skip_batches = epoch, skip_batches
+
+    def _indices(self) -> list[int]:
+        if not self.shuffle:
+            return list(range(self.rank, self.size, self.world_size))
+        generator = torch.Generator().manual_seed(self.seed * 1_000_003 + self.epoch)
+        order = torch.randperm(self.size, generator=generator).tolist()
+        global_batch = self.batch_size * self.world_size
+        order = order[: len(order) // global_batch * global_batch]
+        return order[self.rank :: self.world_size][self.skip_batches * self.batch_size :]
+
+    def batches_per_epoch(self) -> int:
+        """Full batches of one epoch on this rank (training order)."""
+        return self.size // (self.batch_size * self.world_size)
+
+    def __iter__(self) -> Iterator[int]:
+        return iter(self._indices())
+
+    def __len__(self) -> int:
+        return len(self._indices())

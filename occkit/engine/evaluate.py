@@ -1,0 +1,151 @@
+"""Evaluation and prediction with a trained model: Occ3D mIoU / IoU (camera mask), RayIoU, ``<token>.npz`` files.
+
+Both run over a dataset split in order, sharded over ranks under torchrun; confusion matrices and RayIoU counts are
+summed over ranks, so any number of processes gives the same scores.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import io
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+
+from occkit.data.collate import collate
+from occkit.data.dataset import OccupancyDataset
+from occkit.engine import distributed
+from occkit.engine.checkpoint import check_compatible, load_checkpoint
+from occkit.engine.experiment import Experiment, experiment_from_dict
+from occkit.metrics.confusion import OccupancyMetric
+from occkit.metrics.rayiou import RAYIOU_THRESHOLDS, rayiou, rayiou_from_counts
+
+__all__ = [
+    "evaluate_model",
+    "load_trained",
+    "evaluation_dataset",
+    "write_prediction",
+    "split_loader",
+    "dataset_ray_origins",
+]
+
+
+def split_loader(dataset: OccupancyDataset, batch_size: int, workers: int, context: distributed.Context | None):
+    """Every sample once, in order, this rank's share."""
+    rank, world = (context.rank, context.world_size) if context is not None else (0, 1)
+    sampler = distributed.EpochSampler(len(dataset), batch_size, rank, world, shuffle=False)
+    return torch.utils.data.DataLoader(dataset, batch_size=batch_size, sampler=sampler, num_workers=workers,
+                                       collate_fn=collate, generator=torch.Generator())  # fmt: skip
+
+
+def write_prediction(path: Path, semantics: np.ndarray) -> None:
+    """One Occ3D-format prediction file (``semantics``: uint8 ``(200, 200, 16)``), written atomically."""
+    buffer = io.BytesIO()
+    np.savez_compressed(buffer, semantics=semantics.astype(np.uint8))
+    temporary = path.with_name(f".{path.name}.tmp")
+    temporary.write_bytes(buffer.getvalue())
+    temporary.replace(path)
+
+
+def dataset_ray_origins(dataset: OccupancyDataset) -> dict[str, np.ndarray]:
+    """RayIoU origins (ego positions along each scene) of every key frame of the dataset."""
+    from occkit.metrics.origins import PoseRecord, ray_origins
+
+    return ray_origins([PoseRecord(r.token, r.scene, r.lidar2ego, r.ego2global) for r in dataset.records])
+
+
+def _all_reduce(array: np.ndarray) -> np.ndarray:
+    if not (torch.distributed.is_available() and torch.distributed.is_initialized()):
+        return array
+    device = "cuda" if torch.distributed.get_backend() == "nccl" else "cpu"
+    counts = torch.from_numpy(np.ascontiguousarray(array, dtype=np.int64)).to(device)
+    torch.distributed.all_reduce(counts)
+    return counts.cpu().numpy()
+
+
+@torch.no_grad()
+def evaluate_model(
+    model: nn.Module,
+    dataset: OccupancyDataset,
+    batch_size: int = 1,
+    workers: int = 0,
+    context: distributed.Context | None = None,
+    predictions: Path | None = None,
+    ray_origins: dict[str, np.ndarray] | None = None,
+    progress: Callable[[int], None] | None = None,
+) -> dict[str, Any]:
+    """Score a model on a labelled dataset split (camera mask, the official Occ3D setting).
+
+    Args:
+        model: a zoo model; put in eval mode here.
+        dataset: the split, with ``occupancy=True`` and no augmentation.
+        predictions: folder to also write ``<token>.npz`` predictions into.
+        ray_origins: token -> origins; when given, RayIoU is computed too (no mask, as SparseOcc).
+        progress: called with the number of samples after each batch.
+
+    Returns:
+        ``miou``, ``iou``, ``per_class_iou``, ``frames`` and with origins ``rayiou``, ``rayiou@1/2/4``.
+    """
+    was_training = model.training
+    model.eval()
+    device = next(model.parameters()).device
+    metric = OccupancyMetric(mask="camera")
+    ray_counts = None
+    frames = 0
+    for batch in split_loader(dataset, batch_size, workers, context):
+        semantics = model.predict(batch.to(device)).semantics.cpu().numpy()
+        labels = batch.voxel_semantics.numpy()
+        metric.update(labels, semantics, batch.mask_camera.numpy())
+        for i, token in enumerate(batch.tokens):
+            if predictions is not None:
+                write_prediction(predictions / f"{token}.npz", semantics[i])
+            if ray_origins is not None:
+                counts = rayiou([labels[i]], [semantics[i]], [ray_origins[token]])["counts"]
+                frame = np.concatenate([counts["gt"], counts["pred"]] + [counts["tp"][t] for t in RAYIOU_THRESHOLDS])
+                ray_counts = frame.astype(np.int64) if ray_counts is None else ray_counts + frame
+        frames += len(batch)
+        if progress is not None:
+            progress(len(batch))
+    model.train(was_training)
+    metric.confusion = _all_reduce(metric.confusion)
+    result = {**metric.compute(), "frames": int(_all_reduce(np.array([frames]))[0])}
+    if ray_origins is not None:
+        result.update(_rayiou_summary(_all_reduce(ray_counts)))
+    return result
+
+
+def _rayiou_summary(counts: np.ndarray) -> dict[str, float]:
+    parts = np.split(counts, 2 + len(RAYIOU_THRESHOLDS))
+    summary = rayiou_from_counts(parts[0], parts[1], np.stack(parts[2:]))
+    return {key: float(summary[key]) for key in ("rayiou", "rayiou@1", "rayiou@2", "rayiou@4")}
+
+
+def load_trained(path: str | Path, device: str | torch.device = "cpu") -> tuple[nn.Module, Experiment]:
+    """The model of a checkpoint (its EMA weights when it has them) and the experiment it was trained with."""
+    from occkit import zoo
+
+    payload = load_checkpoint(path, map_location=device)
+    try:
+        experiment = experiment_from_dict(payload["experiment"], f"{path} (saved config)")
+    except (KeyError, ValueError) as error:
+        raise ValueError(f"{path}: its saved experiment no longer loads ({error})") from error
+    check_compatible(payload, experiment.architecture, experiment.to_dict()["model"], path)
+    model = zoo.build_from_config(experiment.architecture, experiment.model).to(device)
+    weights = payload["ema"] if payload.get("ema") is not None else payload["model"]
+    try:
+        model.load_state_dict(weights)
+    except RuntimeError as error:
+        raise ValueError(f"{path}: weights do not fit the {experiment.architecture} model ({error})") from error
+    return model.eval(), experiment
+
+
+def evaluation_dataset(experiment: Experiment, root: str | Path | None, split: str, labels: bool = True):
+    """The experiment's data settings on another root/split, without augmentation."""
+    changes: dict[str, Any] = {"split": split, "augment": False, "occupancy": labels}
+    if root is not None:
+        changes.update(root=str(root), index=None)
+    return OccupancyDataset(dataclasses.replace(experiment.data, **changes))

@@ -1,0 +1,153 @@
+"""An experiment: which model, which data, how to train. One YAML file, four sections.
+
+    architecture: daocc        # which model family reads the ``model`` section
+    model: {...}               # e.g. DAOccConfig
+    data: {...}                # occkit.data.dataset.DatasetConfig (the training split's settings)
+    train: {...}               # TrainConfig below
+
+``configs/NAME.yaml`` holds one per zoo entry (``occkit.zoo.experiment(NAME)``); ``occkit train --config FILE
+--set train.lr=2e-4`` reads one. Every key is checked: a typo is an error naming the file and the valid keys.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Literal
+
+import yaml
+
+from occkit.config import ConfigError, dump_yaml, from_dict, override_dict, to_dict
+from occkit.data.dataset import DatasetConfig
+
+__all__ = ["TrainConfig", "Experiment", "load_experiment", "experiment_from_dict", "experiment_yaml", "replace_train"]
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """Optimisation, schedule, precision, validation and checkpointing."""
+
+    epochs: int = 24
+    """Passes over the training split."""
+    max_steps: int = 0
+    """Stop after this many optimizer steps (0: run every epoch); the schedule spans min(epochs, max_steps)."""
+    batch_size: int = 4
+    """Samples per process per forward pass; the global batch is batch_size x processes x accumulate."""
+    accumulate: int = 1
+    """Forward/backward passes per optimizer step (gradient accumulation)."""
+    lr: float = 1e-4
+    """Peak learning rate of AdamW."""
+    weight_decay: float = 0.01
+    """AdamW weight decay."""
+    betas: tuple[float, float] = (0.9, 0.999)
+    """AdamW betas."""
+    warmup_steps: int = 500
+    """Linear warm-up steps, from warmup_ratio x lr to lr."""
+    warmup_ratio: float = 1.0 / 3.0
+    """Learning rate at step 0 as a fraction of lr (mmcv's warmup_ratio)."""
+    min_lr_ratio: float = 1e-3
+    """Cosine annealing ends at min_lr_ratio x lr."""
+    grad_clip: float = 5.0
+    """Maximum global gradient norm (0: no clipping)."""
+    precision: Literal["fp32", "bf16", "fp16"] = "fp32"
+    """Autocast precision on CUDA (fp16 adds loss scaling); CPU always trains in fp32."""
+    ema_decay: float = 0.999
+    """Decay of the exponential moving average of the weights, used for validation and saved (0: none)."""
+    seed: int = 0
+    """Seed of the weights, the data order, the augmentations and every other random draw."""
+    workers: int = 2
+    """DataLoader worker processes per training process."""
+    val_split: str = "val"
+    """Split scored during training and by default by ``occkit eval``."""
+    val_every: int = 1
+    """Validate every this many epochs, and at the end (0: only at the end; -1: never)."""
+    log_every: int = 10
+    """Write the loss terms and learning rate every this many steps."""
+    checkpoint_every: int = 0
+    """Save a checkpoint every this many steps (0: at the end of every epoch)."""
+    keep_last: int = 2
+    """Rolling checkpoints kept besides ``best.pt`` and ``last.pt``."""
+
+    def __post_init__(self) -> None:
+        positive = {"epochs": self.epochs, "batch_size": self.batch_size, "accumulate": self.accumulate,
+                    "keep_last": self.keep_last, "log_every": self.log_every}  # fmt: skip
+        for name, value in positive.items():
+            if value < 1:
+                raise ValueError(f"train.{name} must be at least 1, got {value}")
+        if self.lr <= 0 or not 0 <= self.ema_decay < 1 or not 0 < self.warmup_ratio <= 1:
+            raise ValueError("train.lr must be > 0, train.ema_decay in [0, 1) and train.warmup_ratio in (0, 1]")
+
+
+@dataclass(frozen=True)
+class Experiment:
+    """The four sections of an experiment file."""
+
+    architecture: str
+    model: Any
+    data: DatasetConfig
+    train: TrainConfig
+
+    def to_dict(self) -> dict:
+        return {"architecture": self.architecture, "model": to_dict(self.model), "data": to_dict(self.data),
+                "train": to_dict(self.train)}  # fmt: skip
+
+
+def _model_class(architecture: str, where: str) -> type:
+    from occkit.zoo import ARCHITECTURES
+
+    if architecture not in ARCHITECTURES:
+        raise ConfigError(f"{where}: unknown architecture {architecture!r}; known: {', '.join(sorted(ARCHITECTURES))}")
+    return ARCHITECTURES[architecture]()[0]
+
+
+def experiment_from_dict(data: Any, where: str = "experiment", overrides: Sequence[str] = ()) -> Experiment:
+    """Check and build an experiment from plain data; ``overrides`` are ``section.key=value`` strings."""
+    if not isinstance(data, dict):
+        raise ConfigError(f"{where}: expected a mapping with architecture, model, data and train")
+    unknown = set(data) - {"architecture", "model", "data", "train"}
+    if unknown or "architecture" not in data:
+        raise ConfigError(f"{where}: an experiment has the keys architecture, model, data, train; got {sorted(data)}")
+    model_class = _model_class(data["architecture"], where)
+    parsed = Experiment(
+        architecture=data["architecture"],
+        model=from_dict(model_class, data.get("model") or {}, f"{where}: model"),
+        data=from_dict(DatasetConfig, data.get("data") or {}, f"{where}: data"),
+        train=from_dict(TrainConfig, data.get("train") or {}, f"{where}: train"),
+    )
+    if not overrides:
+        return parsed
+    if any(o.split("=", 1)[0].strip() == "architecture" for o in overrides):
+        raise ConfigError("the architecture cannot be overridden with --set: use another config file")
+    return experiment_from_dict(override_dict(parsed.to_dict(), overrides), f"{where} (after --set)")
+
+
+def load_experiment(path: str | Path, overrides: Sequence[str] = ()) -> Experiment:
+    """Read an experiment YAML and apply overrides; errors name the file and the key."""
+    path = Path(path)
+    try:
+        data = yaml.safe_load(path.read_text())
+    except OSError as error:
+        raise ConfigError(f"cannot read config {path}: {error.strerror}") from error
+    except yaml.YAMLError as error:
+        raise ConfigError(f"{path}: not valid YAML: {error}") from error
+    return experiment_from_dict(data, str(path), overrides)
+
+
+def experiment_yaml(experiment: Experiment, header: str = "") -> str:
+    """Commented YAML of an experiment (each field's docstring above it)."""
+
+    def section(name: str, cfg: Any) -> str:
+        body = dump_yaml(cfg).rstrip("\n")
+        return f"{name}:\n" + "\n".join(("  " + line) if line else line for line in body.splitlines())
+
+    parts = [header.rstrip("\n")] if header else []
+    parts.append(f"architecture: {experiment.architecture}")
+    parts += [section("model", experiment.model), section("data", experiment.data), section("train", experiment.train)]
+    return "\n".join(parts) + "\n"
+
+
+def replace_train(experiment: Experiment, **changes: Any) -> Experiment:
+    """A copy with some training settings changed."""
+    return dataclasses.replace(experiment, train=dataclasses.replace(experiment.train, **changes))

@@ -1,0 +1,119 @@
+"""What a training run writes besides checkpoints: CSV and JSON-lines logs, TensorBoard events and PNG plots."""
+
+from __future__ import annotations
+
+import csv
+import json
+from collections.abc import Mapping
+from pathlib import Path
+
+__all__ = ["RunLog", "plot_losses", "plot_per_class"]
+
+
+class RunLog:
+    """Append-only logs of one run in ``folder``: ``train.csv``, ``log.jsonl``, ``val.jsonl`` and ``tensorboard/``.
+
+    Reopening a folder (``--resume``) appends; rows past the resumed step are dropped first, so a run killed after a
+    log line but before its checkpoint leaves no duplicated steps.
+    """
+
+    def __init__(self, folder: str | Path, resume_step: int | None = None) -> None:
+        self.folder = Path(folder)
+        self.folder.mkdir(parents=True, exist_ok=True)
+        if resume_step is not None:
+            for name in ("log.jsonl", "val.jsonl"):
+                self._truncate(self.folder / name, resume_step)
+        from torch.utils.tensorboard import SummaryWriter
+
+        self.tensorboard = SummaryWriter(str(self.folder / "tensorboard"), purge_step=resume_step)
+        self._columns: list[str] | None = None
+
+    @staticmethod
+    def _truncate(path: Path, step: int) -> None:
+        if not path.is_file():
+            return
+        kept = [line for line in path.read_text().splitlines() if line and json.loads(line)["step"] <= step]
+        path.write_text("".join(line + "\n" for line in kept))
+
+    def _append(self, name: str, row: Mapping) -> None:
+        with open(self.folder / name, "a") as handle:
+            handle.write(json.dumps(row) + "\n")
+
+    def train(self, row: Mapping[str, float]) -> None:
+        """One training log row: ``step``, ``epoch``, ``lr``, loss terms, ``samples_per_s``."""
+        self._append("log.jsonl", row)
+        for key, value in row.items():
+            if key != "step":
+                self.tensorboard.add_scalar(f"train/{key}", value, row["step"])
+        self._rewrite_csv()
+
+    def validation(self, step: int, metrics: Mapping) -> None:
+        """Validation scores: ``miou``, ``iou`` and ``per_class_iou``."""
+        self._append("val.jsonl", {"step": step, **metrics})
+        self.tensorboard.add_scalar("val/miou", metrics["miou"], step)
+        self.tensorboard.add_scalar("val/iou", metrics["iou"], step)
+        for name, value in metrics["per_class_iou"].items():
+            if value is not None:
+                self.tensorboard.add_scalar(f"val_class/{name}", value, step)
+
+    def _rewrite_csv(self) -> None:
+        # Written whole from log.jsonl so that columns appearing later (e.g. a loss term) keep a consistent header.
+        rows = self.rows("log.jsonl")
+        columns = list(dict.fromkeys(key for row in rows for key in row))
+        with open(self.folder / "train.csv", "w", newline="") as handle:
+            writer = csv.DictWriter(handle, fieldnames=columns)
+            writer.writeheader()
+            writer.writerows(rows)
+
+    def rows(self, name: str) -> list[dict]:
+        path = self.folder / name
+        return [json.loads(line) for line in path.read_text().splitlines() if line] if path.is_file() else []
+
+    def close(self) -> None:
+        self.tensorboard.close()
+
+
+def plot_losses(rows: list[dict], path: str | Path) -> None:
+    """Loss terms and their sum against the step, one PNG."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    terms = [k for k in (rows[0] if rows else {}) if k.startswith("loss")]
+    fig, ax = plt.subplots(figsize=(7, 4))
+    for term in terms:
+        ax.plot([r["step"] for r in rows], [r[term] for r in rows], label=term.removeprefix("loss/") or "total")
+    ax.set_xlabel("optimizer step")
+    ax.set_ylabel("loss")
+    ax.set_yscale("log")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def plot_per_class(per_class_iou: Mapping[str, float | None], path: str | Path, title: str) -> None:
+    """Per-class IoU bars in the Occ3D palette."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from occkit.classes import OCC3D_CLASSES, OCC3D_COLORS
+
+    names = [n for n in per_class_iou if n != "free"]
+    values = [100 * (per_class_iou[n] or 0.0) for n in names]
+    colors = [tuple(c / 255 for c in OCC3D_COLORS[OCC3D_CLASSES.index(n)][:3]) if n in OCC3D_CLASSES else "gray"
+              for n in names]  # fmt: skip
+    fig, ax = plt.subplots(figsize=(9, 4))
+    ax.bar(range(len(names)), values, color=colors, edgecolor="black", linewidth=0.5)
+    ax.set_xticks(range(len(names)), names, rotation=60, ha="right", fontsize=8)
+    ax.set_ylabel("IoU (%)")
+    ax.set_ylim(0, 100)
+    ax.set_title(title)
+    ax.grid(axis="y", alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)

@@ -1,0 +1,333 @@
+"""The training loop: AdamW, warm-up + cosine schedule, clipping, accumulation, AMP, EMA, validation, resume.
+
+``train(experiment, out)`` runs one experiment into a run folder (``occkit train`` is a thin wrapper). Single-process
+CPU runs are deterministic: a run killed at any moment and resumed with ``resume="auto"`` ends with the same weights
+as one never interrupted, because a checkpoint holds the model, optimizer, schedule, EMA, every random generator and
+the data position, and the data order and augmentations are pure functions of (seed, epoch, index).
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import nn
+
+from occkit.data.collate import collate
+from occkit.data.dataset import OccupancyDataset
+from occkit.engine import distributed
+from occkit.engine.checkpoint import (
+    atomic_save,
+    check_compatible,
+    latest_checkpoint,
+    load_checkpoint,
+    rng_state,
+    save_checkpoint,
+    set_rng_state,
+)
+from occkit.engine.evaluate import evaluate_model
+from occkit.engine.experiment import Experiment, experiment_yaml
+from occkit.engine.run_log import RunLog, plot_losses, plot_per_class
+from occkit.types import Batch
+
+__all__ = ["train", "ModelEMA", "lr_factor", "TrainResult", "check_output_folder"]
+
+
+@dataclass
+class TrainResult:
+    """What a finished run reports."""
+
+    out: Path
+    steps: int
+    metrics: dict | None
+    best_miou: float | None
+    seconds: float
+
+
+class ModelEMA:
+    """Exponential moving average of a model's parameters (buffers copied), the weights validated and exported."""
+
+    def __init__(self, model: nn.Module, decay: float) -> None:
+        self.module = copy.deepcopy(model).eval()
+        for p in self.module.parameters():
+            p.requires_grad_(False)
+        self.decay = decay
+
+    @torch.no_grad()
+    def update(self, model: nn.Module) -> None:
+        for ema, current in zip(self.module.state_dict().values(), model.state_dict().values(), strict=True):
+            if ema.dtype.is_floating_point:
+                ema.lerp_(current.detach(), 1.0 - self.decay)
+            else:
+                ema.copy_(current)
+
+
+def lr_factor(step: int, total: int, warmup: int, warmup_ratio: float, min_ratio: float) -> float:
+    """Learning-rate multiplier: linear warm-up from ``warmup_ratio`` to 1, then cosine down to ``min_ratio``."""
+    if step < warmup:
+        return warmup_ratio + (1.0 - warmup_ratio) * step / warmup
+    progress = min(1.0, (step - warmup) / max(1, total - warmup))
+    return min_ratio + (1.0 - min_ratio) * 0.5 * (1.0 + math.cos(math.pi * progress))
+
+
+def check_output_folder(out: Path, resume: str | None) -> Path | None:
+    """The checkpoint to resume from (None for a fresh run); refuses to mix a fresh run into an old folder."""
+    if resume not in (None, "auto"):
+        return Path(resume)
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"--out {out} exists and is not a folder")
+    previous = latest_checkpoint(out) if out.is_dir() else None
+    if resume == "auto":
+        return previous
+    if out.is_dir() and any(out.iterdir()):
+        raise FileExistsError(f"--out {out} already holds a run: pass --resume auto to continue it or choose a new "
+                              "folder (nothing was overwritten)")
+    return None
+
+
+def _writable(out: Path) -> None:
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        probe = out / ".write-test"
+        probe.write_text("")
+        probe.unlink()
+    except OSError as error:
+        raise PermissionError(f"cannot write to --out {out}: {error.strerror}") from error
+
+
+class _Trainer:
+    """State and steps of one run; :func:`train` drives it."""
+
+    def __init__(self, experiment: Experiment, out: Path, context: distributed.Context) -> None:
+        from occkit import zoo
+
+        self.experiment, self.out, self.context = experiment, out, context
+        cfg = experiment.train
+        torch.manual_seed(cfg.seed)
+        model = zoo.build_from_config(experiment.architecture, experiment.model).to(context.device)
+        self.model = model
+        self.ddp = (torch.nn.parallel.DistributedDataParallel(model, device_ids=None if context.device.type == "cpu"
+                    else [context.device]) if context.distributed else None)  # fmt: skip
+        trainable = [p for p in model.parameters() if p.requires_grad]
+        self.optimizer = torch.optim.AdamW(trainable, lr=cfg.lr, betas=cfg.betas, weight_decay=cfg.weight_decay)
+        self.ema = ModelEMA(model, cfg.ema_decay) if cfg.ema_decay > 0 else None
+        self.autocast = context.device.type == "cuda" and cfg.precision != "fp32"
+        self.amp_dtype = torch.bfloat16 if cfg.precision == "bf16" else torch.float16
+        self.scaler = torch.amp.GradScaler("cuda", enabled=self.autocast and cfg.precision == "fp16")
+
+        self.dataset = OccupancyDataset(replace(experiment.data, augment=experiment.data.augment))
+        self.sampler = distributed.EpochSampler(len(self.dataset), cfg.batch_size, context.rank, context.world_size,
+                                                shuffle=True, seed=cfg.seed)  # fmt: skip
+        per_epoch = self.sampler.batches_per_epoch() // cfg.accumulate
+        if per_epoch < 1:
+            raise ValueError(f"the training split has {len(self.dataset)} samples, fewer than one optimizer step of "
+                             f"{cfg.batch_size * context.world_size * cfg.accumulate}")
+        self.steps_per_epoch = per_epoch
+        self.total_steps = min(cfg.epochs * per_epoch, cfg.max_steps or cfg.epochs * per_epoch)
+        self.step, self.epoch, self.best_miou = 0, 0, None
+
+    # ------------------------------------------------------------------------------------------ state
+    def state(self) -> dict[str, Any]:
+        return {
+            "architecture": self.experiment.architecture,
+            "experiment": self.experiment.to_dict(),
+            "config_yaml": experiment_yaml(self.experiment),
+            "model": self.model.state_dict(),
+            "ema": self.ema.module.state_dict() if self.ema else None,
+            "optimizer": self.optimizer.state_dict(),
+            "scaler": self.scaler.state_dict(),
+            "step": self.step,
+            "epoch": self.epoch,
+            "best_miou": self.best_miou,
+            "rng": rng_state(),
+        }
+
+    def restore(self, path: Path) -> None:
+        payload = load_checkpoint(path, map_location=self.context.device)
+        check_compatible(payload, self.experiment.architecture, self.experiment.to_dict()["model"], path)
+        self.model.load_state_dict(payload["model"])
+        if self.ema is not None and payload["ema"] is not None:
+            self.ema.module.load_state_dict(payload["ema"])
+        self.optimizer.load_state_dict(payload["optimizer"])
+        self.scaler.load_state_dict(payload["scaler"])
+        self.step, self.epoch, self.best_miou = payload["step"], payload["epoch"], payload["best_miou"]
+        set_rng_state(payload["rng"])
+        if self.context.distributed:  # one saved state, distinct per-rank draws from here on
+            torch.manual_seed(self.experiment.train.seed + 7919 * self.step + self.context.rank)
+
+    def save(self, log: RunLog | None) -> None:
+        if self.context.is_main:
+            save_checkpoint(self.out, self.state(), self.step, self.experiment.train.keep_last)
+        distributed.barrier()
+
+    # ------------------------------------------------------------------------------------------ steps
+    def set_lr(self) -> float:
+        cfg = self.experiment.train
+        lr = cfg.lr * lr_factor(self.step, self.total_steps, cfg.warmup_steps, cfg.warmup_ratio, cfg.min_lr_ratio)
+        for group in self.optimizer.param_groups:
+            group["lr"] = lr
+        return lr
+
+    def forward_backward(self, batch: Batch) -> dict[str, float]:
+        network = self.ddp or self.model
+        with torch.autocast(self.context.device.type, dtype=self.amp_dtype, enabled=self.autocast):
+            output = network(batch)
+            losses = self.model.loss(output, batch)
+        total = sum(losses.values())
+        self.scaler.scale(total / self.experiment.train.accumulate).backward()
+        values = {f"loss/{k}": float(v.detach()) for k, v in losses.items()}
+        values["loss"] = float(total.detach())
+        return values
+
+    def optimizer_step(self) -> None:
+        cfg = self.experiment.train
+        self.scaler.unscale_(self.optimizer)
+        if cfg.grad_clip > 0:
+            torch.nn.utils.clip_grad_norm_(self.model.parameters(), cfg.grad_clip)
+        self.scaler.step(self.optimizer)
+        self.scaler.update()
+        self.optimizer.zero_grad(set_to_none=True)
+        if self.ema is not None:
+            self.ema.update(self.model)
+        self.step += 1
+
+    def loader(self, skip_batches: int) -> torch.utils.data.DataLoader:
+        self.dataset.set_epoch(self.epoch)
+        self.sampler.set_epoch(self.epoch, skip_batches)
+        workers = self.experiment.train.workers
+        # A private generator: creating the iterator must not draw from the global RNG, or a resumed run would
+        # draw at another moment than the uninterrupted one.
+        return torch.utils.data.DataLoader(
+            self.dataset, batch_size=self.experiment.train.batch_size, sampler=self.sampler, num_workers=workers,
+            collate_fn=collate, drop_last=True, generator=torch.Generator().manual_seed(self.epoch),
+            persistent_workers=False, pin_memory=self.context.device.type == "cuda",
+        )  # fmt: skip
+
+    def validate(self) -> dict:
+        weights = self.ema.module if self.ema is not None else self.model
+        val_data = replace(self.experiment.data, split=self.experiment.train.val_split, augment=False)
+        return evaluate_model(weights, OccupancyDataset(val_data), self.experiment.train.batch_size,
+                              self.experiment.train.workers, self.context)  # fmt: skip
+
+
+def _progress(context: distributed.Context, total: int, initial: int, enabled: bool):
+    from tqdm import tqdm
+
+    return tqdm(total=total, initial=initial, unit="step", desc="train", dynamic_ncols=True,
+                disable=not (enabled and context.is_main))  # fmt: skip
+
+
+def train(
+    experiment: Experiment,
+    out: str | Path,
+    resume: str | None = None,
+    progress: bool = True,
+    device: str | None = None,
+    on_step: Callable[[int], None] | None = None,
+) -> TrainResult:
+    """Train ``experiment`` into the run folder ``out``.
+
+    Args:
+        experiment: model, data and training settings.
+        out: run folder (checkpoints, logs, plots, ``config.yaml``); must be new or empty unless resuming.
+        resume: ``"auto"`` continues from the newest checkpoint in ``out`` (a fresh start if there is none), or a
+            checkpoint path; None starts fresh.
+        progress: show a progress bar (loss, samples/s, ETA) on rank 0.
+        device: ``cpu``, ``cuda``, ``cuda:1``...; None picks CUDA when available.
+        on_step: called with the step number after every optimizer step (tests use it to interrupt).
+    """
+    started = time.perf_counter()
+    out = Path(out)
+    context = distributed.setup(device)
+    try:
+        start_from = check_output_folder(out, resume) if context.is_main else None
+        start_from = distributed.broadcast_object(start_from)
+        if context.is_main:
+            _writable(out)
+            (out / "config.yaml").write_text(experiment_yaml(experiment, "# written by occkit train"))
+        distributed.barrier()
+        trainer = _Trainer(experiment, out, context)
+        if start_from is not None:
+            trainer.restore(start_from)
+        log = RunLog(out, resume_step=trainer.step if start_from is not None else None) if context.is_main else None
+        metrics = _run(trainer, log, progress, on_step)
+        return TrainResult(out, trainer.step, metrics, trainer.best_miou, time.perf_counter() - started)
+    finally:
+        distributed.teardown()
+
+
+def _run(trainer: _Trainer, log: RunLog | None, progress: bool, on_step: Callable[[int], None] | None) -> dict | None:
+    cfg = trainer.experiment.train
+    bar = _progress(trainer.context, trainer.total_steps, trainer.step, progress)
+    metrics = None
+    samples_per_step = cfg.batch_size * cfg.accumulate * trainer.context.world_size
+    try:
+        while trainer.step < trainer.total_steps:
+            done_in_epoch = trainer.step - trainer.epoch * trainer.steps_per_epoch
+            trainer.model.train()
+            tick, window = time.perf_counter(), []
+            for index, batch in enumerate(trainer.loader(done_in_epoch * cfg.accumulate)):
+                if index // cfg.accumulate >= trainer.steps_per_epoch - done_in_epoch:
+                    break
+                lr = trainer.set_lr()
+                window.append(trainer.forward_backward(batch.to(trainer.context.device)))
+                if (index + 1) % cfg.accumulate:
+                    continue
+                trainer.optimizer_step()
+                rate = samples_per_step / max(time.perf_counter() - tick, 1e-9)
+                tick = time.perf_counter()
+                bar.update(1)
+                bar.set_postfix(loss=f"{window[-1]['loss']:.3f}", samples_s=f"{rate:.2f}", epoch=trainer.epoch)
+                if log is not None and (trainer.step % cfg.log_every == 0 or trainer.step == trainer.total_steps):
+                    mean = {k: sum(w[k] for w in window) / len(window) for k in window[0]}
+                    log.train({"step": trainer.step, "epoch": trainer.epoch, "lr": lr, **mean, "samples_per_s": rate})
+                    window = []
+                end_of_epoch = trainer.step % trainer.steps_per_epoch == 0
+                if end_of_epoch:
+                    trainer.epoch += 1
+                if trainer.step == trainer.total_steps or (end_of_epoch and cfg.val_every > 0
+                                                           and trainer.epoch % cfg.val_every == 0):
+                    metrics = _validate(trainer, log, bar) if cfg.val_every >= 0 else None
+                if (cfg.checkpoint_every and trainer.step % cfg.checkpoint_every == 0) or end_of_epoch or (
+                        trainer.step == trainer.total_steps):
+                    trainer.save(log)
+                if on_step is not None:
+                    on_step(trainer.step)
+                if trainer.step >= trainer.total_steps:
+                    break
+    finally:
+        bar.close()
+        if log is not None:
+            _finish(trainer, log, metrics)
+    return metrics
+
+
+def _validate(trainer: _Trainer, log: RunLog | None, bar) -> dict:
+    metrics = trainer.validate()
+    if trainer.context.is_main:
+        bar.write(f"step {trainer.step}: val mIoU {100 * metrics['miou']:.2f}  IoU {100 * metrics['iou']:.2f}")
+        log.validation(trainer.step, metrics)
+        if trainer.best_miou is None or metrics["miou"] > trainer.best_miou:
+            trainer.best_miou = metrics["miou"]
+            weights = trainer.ema.module if trainer.ema is not None else trainer.model
+            atomic_save({"format": "occkit-checkpoint/1", "architecture": trainer.experiment.architecture,
+                         "experiment": trainer.experiment.to_dict(), "config_yaml": experiment_yaml(trainer.experiment),
+                         "model": weights.state_dict(), "ema": None, "step": trainer.step, "metrics": metrics},
+                        trainer.out / "best.pt")  # fmt: skip
+    return metrics
+
+
+def _finish(trainer: _Trainer, log: RunLog, metrics: dict | None) -> None:
+    rows = log.rows("log.jsonl")
+    if rows:
+        plot_losses(rows, trainer.out / "loss.png")
+    if metrics is not None:
+        plot_per_class(metrics["per_class_iou"], trainer.out / "per_class_iou.png",
+                       f"validation at step {trainer.step}: mIoU {100 * metrics['miou']:.1f}")  # fmt: skip
+    log.close()
