@@ -294,6 +294,30 @@ def _experiment(config: str, overrides: list[str]):
     return load_experiment(path, overrides)
 
 
+def _is_main_process() -> bool:
+    """False on the ranks other than 0 of a ``torchrun`` launch."""
+    import os
+
+    return int(os.environ.get("RANK", "0")) == 0
+
+
+def _add_experiment_overrides(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--config", default=None,
+                        help="experiment YAML or zoo name to run the checkpoint with (default: the one saved in it); "
+                             "its model must be the checkpoint's")  # fmt: skip
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                        help="override a value of the experiment, e.g. --set 'data.drop_cameras=[CAM_FRONT]' "
+                             "(repeatable)")  # fmt: skip
+
+
+def _load_trained(args: argparse.Namespace, device):
+    from occkit.engine.evaluate import load_trained
+
+    if args.config is not None:
+        return load_trained(args.ckpt, device, experiment=_experiment(args.config, args.set))
+    return load_trained(args.ckpt, device, overrides=args.set)
+
+
 def _run_train(args: argparse.Namespace) -> int:
     from occkit.engine.train import train
 
@@ -303,6 +327,8 @@ def _run_train(args: argparse.Namespace) -> int:
         raise FileNotFoundError(f"data root {data_root} does not exist (set data.root, or write a synthetic dataset "
                                 f"with `occkit sim --out {data_root}`)")
     result = train(experiment, args.out, resume=args.resume, progress=not args.no_progress, device=args.device)
+    if not _is_main_process():  # under torchrun, rank 0 alone writes and reports
+        return 0
     summary = {"out": str(result.out), "steps": result.steps, "seconds": round(result.seconds, 1),
                "best_miou": result.best_miou, "metrics": result.metrics}  # fmt: skip
     _write_json(args.out / "summary.json", summary)
@@ -315,6 +341,7 @@ def _run_train(args: argparse.Namespace) -> int:
 # ----------------------------------------------------------------------------------------------------- eval
 def _add_eval(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--ckpt", type=Path, required=True, help="checkpoint (best.pt, step-*.pt)")
+    _add_experiment_overrides(parser)
     parser.add_argument("--data", type=Path, default=None, help="dataset root (default: the one it was trained on)")
     parser.add_argument("--split", default=None, help="split to score (default: the run's validation split)")
     parser.add_argument("--out", type=Path, required=True, help="folder for metrics.json, metrics.md and plots")
@@ -325,33 +352,38 @@ def _add_eval(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--device", default=None, help="cpu, cuda (default: CUDA when available)")
 
 
-def _device(name: str | None) -> str:
-    import torch
-
-    return name or ("cuda" if torch.cuda.is_available() else "cpu")
-
-
 def _run_eval(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
-    from occkit.engine.evaluate import dataset_ray_origins, evaluate_model, evaluation_dataset, load_trained
+    from occkit.engine import distributed
+    from occkit.engine.evaluate import dataset_ray_origins, evaluate_model, evaluation_dataset
     from occkit.metrics.evaluate import markdown_table, write_report
 
-    model, experiment = load_trained(args.ckpt, _device(args.device))
-    dataset = evaluation_dataset(experiment, args.data, args.split or experiment.train.val_split)
-    _prepare_out(args.out)
-    predictions = None
-    if args.save_predictions:
-        predictions = args.out / "predictions"
-        predictions.mkdir(exist_ok=True)
-    origins = None if args.no_rayiou else dataset_ray_origins(dataset)
-    with tqdm(total=len(dataset), unit="frame", desc="eval") as bar:
-        result = evaluate_model(model, dataset, args.batch_size, args.workers, predictions=predictions,
-                                ray_origins=origins, progress=bar.update)  # fmt: skip
-    result.update(mask="camera", checkpoint=str(args.ckpt), split=dataset.config.split, root=dataset.config.root)
-    print(markdown_table(result), end="")
-    for path in write_report(result, args.out).values():
-        print(f"wrote {path}")
+    # Under torchrun every rank scores its share of the frames; the counts are summed, rank 0 writes the report.
+    context = distributed.setup(args.device)
+    try:
+        model, experiment = _load_trained(args, context.device)
+        dataset = evaluation_dataset(experiment, args.data, args.split or experiment.train.val_split)
+        predictions = args.out / "predictions" if args.save_predictions else None
+        if context.is_main:
+            _prepare_out(args.out)
+            if predictions is not None:
+                predictions.mkdir(exist_ok=True)
+        distributed.barrier()
+        origins = None if args.no_rayiou else dataset_ray_origins(dataset)
+        share = len(range(context.rank, len(dataset), context.world_size))
+        with tqdm(total=share, unit="frame", desc="eval", disable=not context.is_main) as bar:
+            result = evaluate_model(model, dataset, args.batch_size, args.workers, context, predictions=predictions,
+                                    ray_origins=origins, progress=bar.update)  # fmt: skip
+        if context.is_main:
+            # The keys of occkit eval-preds' report (every frame has its prediction here).
+            result.update(mask="camera", missing_predictions=0, checkpoint=str(args.ckpt),
+                          split=dataset.config.split, root=dataset.config.root)  # fmt: skip
+            print(markdown_table(result), end="")
+            for path in write_report(result, args.out).values():
+                print(f"wrote {path}")
+    finally:
+        distributed.teardown()
     return 0
 
 
@@ -367,6 +399,7 @@ def _prepare_out(out: Path) -> None:
 # ----------------------------------------------------------------------------------------------------- predict
 def _add_predict(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--ckpt", type=Path, required=True, help="checkpoint (best.pt, step-*.pt)")
+    _add_experiment_overrides(parser)
     parser.add_argument("--data", type=Path, required=True, help="dataset root (nuScenes layout)")
     parser.add_argument("--split", default="val", help="split to predict: train, val, test, all, ... (default val)")
     parser.add_argument("--out", type=Path, required=True, help="folder for <token>.npz files (Occ3D format)")
@@ -379,19 +412,28 @@ def _run_predict(args: argparse.Namespace) -> int:
     import torch
     from tqdm import tqdm
 
-    from occkit.engine.evaluate import evaluation_dataset, load_trained, split_loader, write_prediction
+    from occkit.engine import distributed
+    from occkit.engine.evaluate import evaluation_dataset, split_loader, write_prediction
 
-    device = _device(args.device)
-    model, experiment = load_trained(args.ckpt, device)
-    dataset = evaluation_dataset(experiment, args.data, args.split, labels=False)
-    _prepare_out(args.out)
-    with torch.no_grad(), tqdm(total=len(dataset), unit="frame", desc="predict") as bar:
-        for batch in split_loader(dataset, args.batch_size, args.workers, None):
-            semantics = model.predict(batch.to(device)).semantics.cpu().numpy()
-            for token, grid in zip(batch.tokens, semantics, strict=True):
-                write_prediction(args.out / f"{token}.npz", grid)
-            bar.update(len(batch))
-    print(f"wrote {len(dataset)} predictions to {args.out} (score them with occkit eval-preds)")
+    context = distributed.setup(args.device)  # under torchrun each rank writes the files of its share
+    try:
+        model, experiment = _load_trained(args, context.device)
+        dataset = evaluation_dataset(experiment, args.data, args.split, labels=False)
+        if context.is_main:
+            _prepare_out(args.out)
+        distributed.barrier()
+        share = len(range(context.rank, len(dataset), context.world_size))
+        with torch.no_grad(), tqdm(total=share, unit="frame", desc="predict", disable=not context.is_main) as bar:
+            for batch in split_loader(dataset, args.batch_size, args.workers, context):
+                semantics = model.predict(batch.to(context.device)).semantics.cpu().numpy()
+                for token, grid in zip(batch.tokens, semantics, strict=True):
+                    write_prediction(args.out / f"{token}.npz", grid)
+                bar.update(len(batch))
+        distributed.barrier()
+        if context.is_main:
+            print(f"wrote {len(dataset)} predictions to {args.out} (score them with occkit eval-preds)")
+    finally:
+        distributed.teardown()
     return 0
 
 

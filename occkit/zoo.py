@@ -107,7 +107,7 @@ def _daocc_tiny() -> Any:
         bev=BevEncoderConfig(in_channels=64, blocks=(1, 1, 1), channels=(32, 64, 128), neck_channels=64),
         range_extension=RangeExtensionConfig(bev_range=(-extent, -extent, extent, extent), in_channels=64,
                                              out_channels=32),
-        occupancy=OccupancyHeadConfig(in_channels=32, hidden_channels=32),
+        occupancy=OccupancyHeadConfig(in_channels=32, hidden_channels=32, class_balance=True),
         detection=CenterHeadConfig(
             in_channels=64, share_conv_channels=16, head_conv_channels=16, point_cloud_range=lidar_range,
             voxel_size=(0.15, 0.15),
@@ -153,7 +153,7 @@ def _flashocc_tiny() -> Any:
         lss=LSSConfig(image_size=(128, 352), depth_range=(1.0, 45.0, 2.0), in_channels=64, context_channels=16),
         bev=BevEncoderConfig(in_channels=16, strides=(2, 2, 2), channels=(32, 64, 128), blocks=(1, 1, 1),
                              neck_channels=32, neck_extra_upsample=2),
-        occupancy=OccupancyHeadConfig(in_channels=32, hidden_channels=32),
+        occupancy=OccupancyHeadConfig(in_channels=32, hidden_channels=32, class_balance=True),
     )  # fmt: skip
 
 
@@ -184,7 +184,7 @@ def _da_occ_tiny() -> Any:
         bev=BevEncoderConfig(in_channels=16, strides=(2, 2, 2), channels=(32, 64, 128), blocks=(1, 1, 1),
                              neck_channels=32, neck_extra_upsample=2),
         fusion_channels=32,
-        occupancy=OccupancyHeadConfig(in_channels=32, hidden_channels=32),
+        occupancy=OccupancyHeadConfig(in_channels=32, hidden_channels=32, class_balance=True),
     )  # fmt: skip
 
 
@@ -200,7 +200,7 @@ def _data(family: str, tiny: bool) -> Any:
         return DatasetConfig(cameras=cameras, sweeps=sweeps, boxes=family.startswith("daocc"), augment=True,
                              depth_downsample=16 if family == "da_occ" else 0)  # fmt: skip
     return DatasetConfig(
-        root="data/demo", cameras=CAMERAS, sweeps=min(sweeps, 2), boxes=family.startswith("daocc"), augment=True,
+        root="data/demo", cameras=CAMERAS, sweeps=min(sweeps, 4), boxes=family.startswith("daocc"), augment=True,
         image_aug=ImageAugConfig(final_size=(128, 352), rotate_deg=(0.0, 0.0)),
         depth_downsample=16 if family == "da_occ" else 0,
     )  # fmt: skip
@@ -212,8 +212,8 @@ def _train(family: str, tiny: bool) -> Any:
     from occkit.engine.experiment import TrainConfig
 
     if tiny:
-        return TrainConfig(epochs=4, batch_size=2, lr=2e-3, warmup_steps=20, grad_clip=35.0, ema_decay=0.0,
-                           workers=1, val_every=0, log_every=5)  # fmt: skip
+        return TrainConfig(epochs=5, batch_size=1, lr=2e-3, warmup_steps=50, grad_clip=35.0, ema_decay=0.0,
+                           workers=1, val_every=0, log_every=10)  # fmt: skip
     if family.startswith("daocc"):
         return TrainConfig(epochs=24, batch_size=4, lr=2e-4, grad_clip=35.0, precision="fp16")
     if family == "flashocc":

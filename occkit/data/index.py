@@ -785,7 +785,8 @@ def save_index(records: Sequence[FrameRecord], path: str | Path, meta: Mapping[s
         "frames": len(records),
     }
     path.parent.mkdir(parents=True, exist_ok=True)
-    partial = path.with_name(f".{path.name}.partial")
+    # A per-process name: ranks of one torchrun job may build the same cache at the same moment.
+    partial = path.with_name(f".{path.name}.{os.getpid()}.partial")
     with open(partial, "w", encoding="utf-8") as stream:
         # The header first, so `head` shows what a file is; json.dumps per record keeps memory flat.
         stream.write(json.dumps(header)[:-1] + ', "records": [\n')

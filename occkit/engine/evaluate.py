@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import io
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -94,7 +94,7 @@ def evaluate_model(
     model.eval()
     device = next(model.parameters()).device
     metric = OccupancyMetric(mask="camera")
-    ray_counts = None
+    ray_counts = _frame_counts(rayiou([], [], [])["counts"])  # zeros: a rank may hold no frame at all
     frames = 0
     for batch in split_loader(dataset, batch_size, workers, context):
         semantics = model.predict(batch.to(device)).semantics.cpu().numpy()
@@ -104,9 +104,7 @@ def evaluate_model(
             if predictions is not None:
                 write_prediction(predictions / f"{token}.npz", semantics[i])
             if ray_origins is not None:
-                counts = rayiou([labels[i]], [semantics[i]], [ray_origins[token]])["counts"]
-                frame = np.concatenate([counts["gt"], counts["pred"]] + [counts["tp"][t] for t in RAYIOU_THRESHOLDS])
-                ray_counts = frame.astype(np.int64) if ray_counts is None else ray_counts + frame
+                ray_counts += _frame_counts(rayiou([labels[i]], [semantics[i]], [ray_origins[token]])["counts"])
         frames += len(batch)
         if progress is not None:
             progress(len(batch))
@@ -118,21 +116,42 @@ def evaluate_model(
     return result
 
 
+def _frame_counts(counts: dict) -> np.ndarray:
+    parts = [counts["gt"], counts["pred"]] + [counts["tp"][t] for t in RAYIOU_THRESHOLDS]
+    return np.concatenate(parts).astype(np.int64)
+
+
 def _rayiou_summary(counts: np.ndarray) -> dict[str, float]:
     parts = np.split(counts, 2 + len(RAYIOU_THRESHOLDS))
     summary = rayiou_from_counts(parts[0], parts[1], np.stack(parts[2:]))
     return {key: float(summary[key]) for key in ("rayiou", "rayiou@1", "rayiou@2", "rayiou@4")}
 
 
-def load_trained(path: str | Path, device: str | torch.device = "cpu") -> tuple[nn.Module, Experiment]:
-    """The model of a checkpoint (its EMA weights when it has them) and the experiment it was trained with."""
+def load_trained(
+    path: str | Path,
+    device: str | torch.device = "cpu",
+    experiment: Experiment | None = None,
+    overrides: Sequence[str] = (),
+) -> tuple[nn.Module, Experiment]:
+    """The model of a checkpoint (its EMA weights when it has them) and the experiment to run it with.
+
+    Args:
+        path: an occkit checkpoint.
+        device: where to put the model.
+        experiment: the experiment to use instead of the one saved in the checkpoint (e.g. other data settings);
+            its model must be the checkpoint's (a ``ValueError`` names the first difference).
+        overrides: ``section.key=value`` changes applied to the saved experiment (when ``experiment`` is None).
+    """
     from occkit import zoo
 
     payload = load_checkpoint(path, map_location=device)
-    try:
-        experiment = experiment_from_dict(payload["experiment"], f"{path} (saved config)")
-    except (KeyError, ValueError) as error:
-        raise ValueError(f"{path}: its saved experiment no longer loads ({error})") from error
+    if experiment is None:
+        try:
+            experiment = experiment_from_dict(payload["experiment"], f"{path} (saved config)")
+        except (KeyError, ValueError) as error:
+            raise ValueError(f"{path}: its saved experiment no longer loads ({error})") from error
+        if overrides:
+            experiment = experiment_from_dict(experiment.to_dict(), f"{path} (saved config)", overrides)
     check_compatible(payload, experiment.architecture, experiment.to_dict()["model"], path)
     model = zoo.build_from_config(experiment.architecture, experiment.model).to(device)
     weights = payload["ema"] if payload.get("ema") is not None else payload["model"]

@@ -13,8 +13,8 @@ __all__ = ["RunLog", "plot_losses", "plot_per_class"]
 class RunLog:
     """Append-only logs of one run in ``folder``: ``train.csv``, ``log.jsonl``, ``val.jsonl`` and ``tensorboard/``.
 
-    Reopening a folder (``--resume``) appends; rows past the resumed step are dropped first, so a run killed after a
-    log line but before its checkpoint leaves no duplicated steps.
+    Reopening a folder (``--resume``) appends; rows past the resumed step (and a line torn by a kill) are dropped
+    first, so a run killed after a log line but before its checkpoint leaves no duplicated steps.
     """
 
     def __init__(self, folder: str | Path, resume_step: int | None = None) -> None:
@@ -32,8 +32,17 @@ class RunLog:
     def _truncate(path: Path, step: int) -> None:
         if not path.is_file():
             return
-        kept = [line for line in path.read_text().splitlines() if line and json.loads(line)["step"] <= step]
-        path.write_text("".join(line + "\n" for line in kept))
+        kept = []
+        for line in path.read_text().splitlines():
+            try:
+                row = json.loads(line)
+            except ValueError:  # the torn last line of a run killed while appending
+                continue
+            if row["step"] <= step:
+                kept.append(line)
+        temporary = path.with_name(f".{path.name}.tmp")
+        temporary.write_text("".join(line + "\n" for line in kept))
+        temporary.replace(path)  # killed again now, the log is still whole
 
     def _append(self, name: str, row: Mapping) -> None:
         with open(self.folder / name, "a") as handle:

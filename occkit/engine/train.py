@@ -3,19 +3,23 @@
 ``train(experiment, out)`` runs one experiment into a run folder (``occkit train`` is a thin wrapper). Single-process
 CPU runs are deterministic: a run killed at any moment and resumed with ``resume="auto"`` ends with the same weights
 as one never interrupted, because a checkpoint holds the model, optimizer, schedule, EMA, every random generator and
-the data position, and the data order and augmentations are pure functions of (seed, epoch, index).
+the data position, and the data order and augmentations are pure functions of (seed, epoch, index). Under torchrun
+every rank holds one and the same model at every step (BatchNorm running statistics are rank 0's), so the sharded
+validation scores exactly the weights that are saved.
 """
 
 from __future__ import annotations
 
 import copy
 import math
+import random
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 from torch import nn
 
@@ -79,7 +83,11 @@ def lr_factor(step: int, total: int, warmup: int, warmup_ratio: float, min_ratio
 def check_output_folder(out: Path, resume: str | None) -> Path | None:
     """The checkpoint to resume from (None for a fresh run); refuses to mix a fresh run into an old folder."""
     if resume not in (None, "auto"):
-        return Path(resume)
+        checkpoint = Path(resume)
+        if out.is_dir() and any(out.iterdir()) and checkpoint.resolve().parent != out.resolve():
+            raise FileExistsError(f"--out {out} already holds another run: resume {checkpoint} into its own folder "
+                                  "or a new one (nothing was overwritten)")  # fmt: skip
+        return checkpoint
     if out.exists() and not out.is_dir():
         raise ValueError(f"--out {out} exists and is not a folder")
     previous = latest_checkpoint(out) if out.is_dir() else None
@@ -109,7 +117,11 @@ class _Trainer:
 
         self.experiment, self.out, self.context = experiment, out, context
         cfg = experiment.train
+        # Every generator a checkpoint saves starts from the seed: numpy's and Python's global ones are otherwise
+        # seeded from the OS, so a draw from them (a user's augmentation or model) would differ from run to run.
         torch.manual_seed(cfg.seed)
+        np.random.seed(cfg.seed)
+        random.seed(cfg.seed)
         model = zoo.build_from_config(experiment.architecture, experiment.model).to(context.device)
         self.model = model
         self.ddp = (torch.nn.parallel.DistributedDataParallel(model, device_ids=None if context.device.type == "cpu"
@@ -131,6 +143,8 @@ class _Trainer:
         self.steps_per_epoch = per_epoch
         self.total_steps = min(cfg.epochs * per_epoch, cfg.max_steps or cfg.epochs * per_epoch)
         self.step, self.epoch, self.best_miou = 0, 0, None
+        # Loss terms of the steps since the last log row: saved too, so a resumed run logs the same means.
+        self.log_window: list[dict[str, float]] = []
 
     # ------------------------------------------------------------------------------------------ state
     def state(self) -> dict[str, Any]:
@@ -145,6 +159,7 @@ class _Trainer:
             "step": self.step,
             "epoch": self.epoch,
             "best_miou": self.best_miou,
+            "log_window": list(self.log_window),
             "rng": rng_state(),
         }
 
@@ -157,6 +172,7 @@ class _Trainer:
         self.optimizer.load_state_dict(payload["optimizer"])
         self.scaler.load_state_dict(payload["scaler"])
         self.step, self.epoch, self.best_miou = payload["step"], payload["epoch"], payload["best_miou"]
+        self.log_window = list(payload.get("log_window") or [])
         set_rng_state(payload["rng"])
         if self.context.distributed:  # one saved state, distinct per-rank draws from here on
             torch.manual_seed(self.experiment.train.seed + 7919 * self.step + self.context.rank)
@@ -193,6 +209,11 @@ class _Trainer:
         self.scaler.step(self.optimizer)
         self.scaler.update()
         self.optimizer.zero_grad(set_to_none=True)
+        if self.context.distributed:
+            # Gradients are averaged, so parameters agree on every rank, but each rank's BatchNorm updated its
+            # running statistics from its own samples: make them rank 0's (which the checkpoints hold), so the
+            # EMA, the sharded validation and the saved weights are one and the same model on every rank.
+            distributed.broadcast_tensors(list(self.model.buffers()))
         if self.ema is not None:
             self.ema.update(self.model)
         self.step += 1
@@ -250,12 +271,17 @@ def train(
         start_from = distributed.broadcast_object(start_from)
         if context.is_main:
             _writable(out)
-            (out / "config.yaml").write_text(experiment_yaml(experiment, "# written by occkit train"))
         distributed.barrier()
         trainer = _Trainer(experiment, out, context)
         if start_from is not None:
-            trainer.restore(start_from)
-        log = RunLog(out, resume_step=trainer.step if start_from is not None else None) if context.is_main else None
+            trainer.restore(start_from)  # an incompatible checkpoint fails here, before anything is written
+        if context.is_main:
+            (out / "config.yaml").write_text(experiment_yaml(experiment, "# written by occkit train"))
+        distributed.barrier()
+        # Resuming (or "auto" starting afresh after a run killed before its first checkpoint) drops the log rows
+        # past the checkpoint's step.
+        resume_step = trainer.step if start_from is not None or resume == "auto" else None
+        log = RunLog(out, resume_step=resume_step) if context.is_main else None
         metrics = _run(trainer, log, progress, on_step)
         return TrainResult(out, trainer.step, metrics, trainer.best_miou, time.perf_counter() - started)
     finally:
@@ -271,7 +297,7 @@ def _run(trainer: _Trainer, log: RunLog | None, progress: bool, on_step: Callabl
         while trainer.step < trainer.total_steps:
             done_in_epoch = trainer.step - trainer.epoch * trainer.steps_per_epoch
             trainer.model.train()
-            tick, window = time.perf_counter(), []
+            tick, window = time.perf_counter(), trainer.log_window
             for index, batch in enumerate(trainer.loader(done_in_epoch * cfg.accumulate)):
                 if index // cfg.accumulate >= trainer.steps_per_epoch - done_in_epoch:
                     break
@@ -284,10 +310,13 @@ def _run(trainer: _Trainer, log: RunLog | None, progress: bool, on_step: Callabl
                 tick = time.perf_counter()
                 bar.update(1)
                 bar.set_postfix(loss=f"{window[-1]['loss']:.3f}", samples_s=f"{rate:.2f}", epoch=trainer.epoch)
-                if log is not None and (trainer.step % cfg.log_every == 0 or trainer.step == trainer.total_steps):
+                if trainer.step % cfg.log_every == 0 or trainer.step == trainer.total_steps:
                     mean = {k: sum(w[k] for w in window) / len(window) for k in window[0]}
-                    log.train({"step": trainer.step, "epoch": trainer.epoch, "lr": lr, **mean, "samples_per_s": rate})
-                    window = []
+                    mean = distributed.all_reduce_mean(mean, trainer.context.device)  # the global batch's losses
+                    if log is not None:
+                        log.train({"step": trainer.step, "epoch": trainer.epoch, "lr": lr, **mean,
+                                   "samples_per_s": rate})  # fmt: skip
+                    window.clear()
                 end_of_epoch = trainer.step % trainer.steps_per_epoch == 0
                 if end_of_epoch:
                     trainer.epoch += 1

@@ -23,13 +23,22 @@ everything else delegating to spconv's own class. CUDA tensors never reach it.
 
 from __future__ import annotations
 
+import logging
+import warnings
 from collections.abc import Sequence
 
-import spconv.pytorch as spconv
-import spconv.pytorch.ops as _spconv_ops
-import torch
-from spconv.pytorch import SparseConv3d, SparseConvTensor, SparseSequential, SubMConv3d
-from torch import Tensor
+# Two messages spconv 2.3.8 triggers on every run that are not the user's to act on: its dense scatter indexes with
+# a list (a PyTorch deprecation warning from spconv's own code), and a torch.fx note about is_fx_tracing that its
+# import path prints. Silenced narrowly: only that message, only that logger's warnings.
+warnings.filterwarnings("ignore", message="Using a non-tuple sequence for multidimensional indexing",
+                        category=UserWarning)
+logging.getLogger("torch.fx._symbolic_trace").setLevel(logging.ERROR)
+
+import spconv.pytorch as spconv  # noqa: E402
+import spconv.pytorch.ops as _spconv_ops  # noqa: E402
+import torch  # noqa: E402
+from spconv.pytorch import SparseConv3d, SparseConvTensor, SparseSequential, SubMConv3d  # noqa: E402
+from torch import Tensor  # noqa: E402
 
 __all__ = [
     "spconv",
