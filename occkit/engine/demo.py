@@ -55,8 +55,12 @@ def _baseline(dataset) -> dict:
     return metric.compute()
 
 
-def _render(models: dict, dataset, out: Path, frames: int = 3) -> Path:
-    """Ground truth and each model's prediction, bird's-eye view under the camera mask, a row per frame."""
+def _render(models: dict, datasets: dict, out: Path, frames: int = 3) -> Path:
+    """Ground truth and each model's prediction, bird's-eye view under the camera mask, a row per frame.
+
+    ``datasets`` holds each model's own view of the validation split (a camera-only model loads no LiDAR); they
+    list the same frames in the same order.
+    """
     import matplotlib
 
     matplotlib.use("Agg")
@@ -66,14 +70,18 @@ def _render(models: dict, dataset, out: Path, frames: int = 3) -> Path:
     from occkit.data.collate import collate
     from occkit.sim.preview import bev_image
 
-    picks = np.linspace(0, len(dataset) - 1, frames).round().astype(int)
+    first = next(iter(datasets.values()))
+    picks = np.linspace(0, len(first) - 1, frames).round().astype(int)
     fig, axes = plt.subplots(frames, 1 + len(models), figsize=(3.2 * (1 + len(models)), 3.3 * frames))
     for row, index in enumerate(picks):
-        batch = collate([dataset[int(index)]])
+        batch = collate([first[int(index)]])
         mask = batch.mask_camera[0].numpy()
         panels = [("ground truth", batch.voxel_semantics[0].numpy())]
         with torch.no_grad():
-            panels += [(name, model.predict(batch).semantics[0].numpy()) for name, model in models.items()]
+            for name, model in models.items():
+                own = collate([datasets[name][int(index)]])
+                assert own.tokens == batch.tokens, "the models' validation datasets list different frames"
+                panels.append((name, model.predict(own).semantics[0].numpy()))
         for column, (title, grid) in enumerate(panels):
             axis = axes[row, column]
             axis.imshow(bev_image(grid, mask))
@@ -93,9 +101,10 @@ def _report(out: Path, results: dict, baseline: dict, seconds: float, render: Pa
     lines = [
         "# occkit demo",
         "",
-        f"Trained on the synthetic world's training scenes and scored on its held-out scenes in {seconds / 60:.1f} "
-        "minutes on this machine. Occ3D protocol: mIoU over the 17 semantic classes and geometry IoU "
-        "(occupied vs free), both under the camera visibility mask; RayIoU without mask.",
+        "Trained on the synthetic world's training scenes and scored on its held-out scenes on this machine "
+        f"(this run: {seconds / 60:.1f} min; training already done in this folder is reused). Occ3D protocol: mIoU "
+        "over the 17 semantic classes and geometry IoU (occupied vs free), both under the camera visibility mask; "
+        "RayIoU without mask.",
         "",
         "| model | inputs | steps | train time | mIoU | IoU | RayIoU |",
         "| --- | --- | --- | --- | --- | --- | --- |",
@@ -121,36 +130,56 @@ def _report(out: Path, results: dict, baseline: dict, seconds: float, render: Pa
     return path
 
 
+def _training_time(folder: Path, seconds: float) -> float:
+    """Total training seconds of a run folder, over the demo runs that trained in it (a rerun adds ~0)."""
+    path = folder / "demo_train_seconds.json"
+    total = (json.loads(path.read_text())["seconds"] if path.is_file() else 0.0) + seconds
+    path.write_text(json.dumps({"seconds": total}) + "\n")
+    return total
+
+
 def run_demo(out: str | Path, data: str | Path, models: dict[str, int] | None = None) -> Path:
     """Run the demo into ``out`` (a new or earlier demo folder) on ``data``; returns the report's path."""
-    from occkit import zoo
-    from occkit.engine.evaluate import dataset_ray_origins, evaluate_model, evaluation_dataset, load_trained
-    from occkit.engine.experiment import replace_train
-    from occkit.engine.train import train
+    import torch
 
     started = time.perf_counter()
     out, data = Path(out), Path(data)
     models = DEMO_MODELS if models is None else models
     _ensure_world(data)
+    try:
+        return _train_score_report(out, data, models, started)
+    finally:
+        torch.set_flush_denormal(False)
+
+
+def _train_score_report(out: Path, data: Path, models: dict[str, int], started: float) -> Path:
+    import torch
+
+    from occkit import zoo
+    from occkit.engine.evaluate import dataset_ray_origins, evaluate_model, evaluation_dataset, load_trained
+    from occkit.engine.experiment import replace_train
+    from occkit.engine.train import train
+
     out.mkdir(parents=True, exist_ok=True)
-    results, trained = {}, {}
+    results, trained, datasets = {}, {}, {}
     for name, steps in models.items():
         experiment = zoo.experiment(name)
         experiment = dataclasses.replace(experiment, data=dataclasses.replace(experiment.data, root=str(data)))
         experiment = replace_train(experiment, max_steps=steps, epochs=1000, val_every=-1, checkpoint_every=100)
         _say(f"training {name} for {steps} steps ({zoo.description(name)})")
         run = train(experiment, out / name, resume="auto")
+        train_seconds = _training_time(out / name, run.seconds)
         model, experiment = load_trained(sorted((out / name).glob("step-*.pt"))[-1])
         dataset = evaluation_dataset(experiment, data, "val")
+        torch.set_flush_denormal(True)  # as during training: subnormals are an order of magnitude slower on CPUs
         _say(f"scoring {name} on {len(dataset)} held-out frames")
         scores = evaluate_model(model, dataset, batch_size=1, workers=1, ray_origins=dataset_ray_origins(dataset))
-        results[name] = {**scores, "steps": run.steps, "train_seconds": run.seconds}
-        trained[name] = model
+        results[name] = {**scores, "steps": run.steps, "train_seconds": train_seconds}
+        trained[name], datasets[name] = model, dataset
         _say(f"{name}: mIoU {100 * scores['miou']:.1f}, IoU {100 * scores['iou']:.1f}, "
              f"RayIoU {100 * scores['rayiou']:.1f}")  # fmt: skip
-    val = evaluation_dataset(experiment, data, "val")
-    baseline = _baseline(val)
-    render = _render(trained, val, out)
+    baseline = _baseline(next(iter(datasets.values())))
+    render = _render(trained, datasets, out)
     seconds = time.perf_counter() - started
     metrics = {name: {k: v for k, v in r.items()} for name, r in results.items()}
     metrics["most_frequent_class"] = {"miou": baseline["miou"], "iou": baseline["iou"]}

@@ -47,7 +47,8 @@ def setup(device: str | None = None) -> Context:
         torch.cuda.set_device(target)
     else:
         # Subnormal floats (gradients and activations decaying towards zero) run an order of magnitude slower on
-        # x86 CPUs; flushing them to zero, as GPUs do by default, changes no result above 1e-38.
+        # x86 CPUs; flushing them to zero, as GPUs do by default, changes no result above 1e-38. Process-wide, so
+        # teardown() restores PyTorch's default.
         torch.set_flush_denormal(True)
     if world_size > 1 and not dist.is_initialized():
         dist.init_process_group(backend="nccl" if target.type == "cuda" else "gloo")
@@ -55,8 +56,10 @@ def setup(device: str | None = None) -> Context:
 
 
 def teardown() -> None:
+    """Leave the process group and restore the float mode :func:`setup` changed."""
     if dist.is_available() and dist.is_initialized():
         dist.destroy_process_group()
+    torch.set_flush_denormal(False)
 
 
 def barrier() -> None:
