@@ -382,6 +382,7 @@ def _run_eval(args: argparse.Namespace) -> int:
             print(markdown_table(result), end="")
             for path in write_report(result, args.out).values():
                 print(f"wrote {path}")
+        distributed.barrier()  # every rank leaves the group together, none while another still uses it
     finally:
         distributed.teardown()
     return 0
