@@ -389,12 +389,9 @@ def _run_eval(args: argparse.Namespace) -> int:
 
 
 def _prepare_out(out: Path) -> None:
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-        (out / ".write-test").write_text("")
-        (out / ".write-test").unlink()
-    except OSError as error:
-        raise PermissionError(f"cannot write to --out {out}: {error.strerror}") from error
+    from occkit.engine.checkpoint import ensure_writable
+
+    ensure_writable(out)
 
 
 # ----------------------------------------------------------------------------------------------------- predict

@@ -86,6 +86,24 @@ def make_batch(
     return batch
 
 
+def fit_batch(model: torch.nn.Module, batch: Batch, steps: int = 20, lr: float = 2e-3) -> list[float]:
+    """Train ``model`` on one fixed batch with AdamW; the summed loss before each step."""
+    optimizer = torch.optim.AdamW(model.parameters(), lr=lr)
+    history = []
+    for _ in range(steps):
+        loss = sum(model.loss(model(batch), batch).values())
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+        history.append(loss.item())
+    return history
+
+
+def parameters_without_gradient(model: torch.nn.Module) -> list[str]:
+    """Names of trainable parameters whose gradient is missing or all zero after a backward pass."""
+    return [n for n, p in model.named_parameters() if p.requires_grad and (p.grad is None or not p.grad.any())]
+
+
 @pytest.fixture
 def synthetic_batch():
     """Factory: ``synthetic_batch(**kwargs)`` -> :func:`make_batch`."""

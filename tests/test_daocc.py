@@ -7,6 +7,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from conftest import fit_batch, parameters_without_gradient
 
 from occkit import zoo
 from occkit.config import ConfigError
@@ -61,7 +62,7 @@ def test_every_parameter_gets_a_gradient(synthetic_batch):
     losses = model.loss(model(batch), batch)
     assert set(losses) == {"occupancy", "det_heatmap", "det_bbox"}
     sum(losses.values()).backward()
-    missing = [n for n, p in model.named_parameters() if p.requires_grad and (p.grad is None or not p.grad.any())]
+    missing = parameters_without_gradient(model)
     assert not missing, f"no gradient for {missing}"
     assert all(torch.isfinite(p.grad).all() for p in model.parameters() if p.grad is not None)
 
@@ -69,14 +70,7 @@ def test_every_parameter_gets_a_gradient(synthetic_batch):
 def test_loss_decreases_on_a_fixed_batch(synthetic_batch):
     model = tiny().train()
     batch = synthetic_batch(batch_size=1)
-    optimizer = torch.optim.AdamW(model.parameters(), lr=2e-3)
-    history = []
-    for _ in range(20):
-        loss = sum(model.loss(model(batch), batch).values())
-        optimizer.zero_grad()
-        loss.backward()
-        optimizer.step()
-        history.append(loss.item())
+    history = fit_batch(model, batch)
     assert history[-1] < 0.5 * history[0], history
 
 

@@ -6,6 +6,7 @@ import dataclasses
 
 import pytest
 import torch
+from conftest import fit_batch, parameters_without_gradient
 
 from occkit import zoo
 from occkit.models.complexity import count_parameters
@@ -37,21 +38,14 @@ def test_shapes_and_every_parameter_gets_a_gradient(synthetic_batch):
     losses = model.loss(output, batch)
     assert set(losses) == {"occupancy"}
     losses["occupancy"].backward()
-    missing = [n for n, p in model.named_parameters() if p.requires_grad and (p.grad is None or not p.grad.any())]
+    missing = parameters_without_gradient(model)
     assert not missing, f"no gradient for {missing}"
 
 
 def test_loss_decreases_on_a_fixed_batch(synthetic_batch):
     model = tiny().train()
     batch = synthetic_batch(batch_size=1, image_size=(64, 176))
-    optimizer = torch.optim.AdamW(model.parameters(), lr=2e-3)
-    history = []
-    for _ in range(20):
-        loss = sum(model.loss(model(batch), batch).values())
-        optimizer.zero_grad()
-        loss.backward()
-        optimizer.step()
-        history.append(loss.item())
+    history = fit_batch(model, batch)
     assert history[-1] < 0.5 * history[0], history
 
 

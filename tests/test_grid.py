@@ -114,3 +114,11 @@ def test_cuda_matches_cpu():
     index_cpu, inside_cpu = OCC3D_GRID.world_to_index(points)
     index_gpu, inside_gpu = OCC3D_GRID.world_to_index(points.cuda())
     assert torch.equal(index_gpu.cpu(), index_cpu) and torch.equal(inside_gpu.cpu(), inside_cpu)
+
+
+def test_from_shape_cuts_a_range_into_voxel_counts():
+    grid = VoxelGrid.from_shape((-54.0, -54.0, -5.0, 54.0, 54.0, 3.0), (180, 180, 10))
+    assert grid.shape == (180, 180, 10)
+    assert grid.voxel_size == pytest.approx((0.6, 0.6, 0.8))
+    with pytest.raises(ValueError, match="positive voxel counts"):
+        VoxelGrid.from_shape((-1.0, -1.0, -1.0, 1.0, 1.0, 1.0), (2, 0, 2))

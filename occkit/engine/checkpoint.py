@@ -28,9 +28,21 @@ __all__ = [
     "rng_state",
     "set_rng_state",
     "check_compatible",
+    "ensure_writable",
 ]
 
 FORMAT = "occkit-checkpoint/1"
+
+
+def ensure_writable(out: Path) -> None:
+    """Create ``out`` and prove a file can be written there, or raise ``PermissionError`` naming it."""
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        probe = out / ".write-test"
+        probe.write_text("")
+        probe.unlink()
+    except OSError as error:
+        raise PermissionError(f"cannot write to --out {out}: {error.strerror}") from error
 
 
 def _fsync_dir(folder: Path) -> None:

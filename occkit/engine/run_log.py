@@ -27,6 +27,8 @@ class RunLog:
 
         self.tensorboard = SummaryWriter(str(self.folder / "tensorboard"), purge_step=resume_step)
         self._columns: list[str] | None = None
+        if resume_step is not None:
+            self._rewrite_csv()  # drop the rows past the resumed step from the CSV too
 
     @staticmethod
     def _truncate(path: Path, step: int) -> None:
@@ -54,7 +56,11 @@ class RunLog:
         for key, value in row.items():
             if key != "step":
                 self.tensorboard.add_scalar(f"train/{key}", value, row["step"])
-        self._rewrite_csv()
+        if self._columns is not None and list(row) == self._columns:
+            with open(self.folder / "train.csv", "a", newline="") as handle:
+                csv.DictWriter(handle, fieldnames=self._columns).writerow(row)
+        else:
+            self._rewrite_csv()
 
     def validation(self, step: int, metrics: Mapping) -> None:
         """Validation scores: ``miou``, ``iou`` and ``per_class_iou``."""
@@ -66,9 +72,11 @@ class RunLog:
                 self.tensorboard.add_scalar(f"val_class/{name}", value, step)
 
     def _rewrite_csv(self) -> None:
-        # Written whole from log.jsonl so that columns appearing later (e.g. a loss term) keep a consistent header.
+        # Written whole from log.jsonl, only when the columns change (a loss term appearing later) or on resume, so
+        # the header stays consistent; rows with the same columns are appended.
         rows = self.rows("log.jsonl")
         columns = list(dict.fromkeys(key for row in rows for key in row))
+        self._columns = columns
         with open(self.folder / "train.csv", "w", newline="") as handle:
             writer = csv.DictWriter(handle, fieldnames=columns)
             writer.writeheader()

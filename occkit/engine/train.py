@@ -29,6 +29,7 @@ from occkit.engine import distributed
 from occkit.engine.checkpoint import (
     atomic_save,
     check_compatible,
+    ensure_writable,
     latest_checkpoint,
     load_checkpoint,
     rng_state,
@@ -97,16 +98,6 @@ def check_output_folder(out: Path, resume: str | None) -> Path | None:
         raise FileExistsError(f"--out {out} already holds a run: pass --resume auto to continue it or choose a new "
                               "folder (nothing was overwritten)")
     return None
-
-
-def _writable(out: Path) -> None:
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-        probe = out / ".write-test"
-        probe.write_text("")
-        probe.unlink()
-    except OSError as error:
-        raise PermissionError(f"cannot write to --out {out}: {error.strerror}") from error
 
 
 class _Trainer:
@@ -270,7 +261,7 @@ def train(
         start_from = check_output_folder(out, resume) if context.is_main else None
         start_from = distributed.broadcast_object(start_from)
         if context.is_main:
-            _writable(out)
+            ensure_writable(out)
         distributed.barrier()
         trainer = _Trainer(experiment, out, context)
         if start_from is not None:

@@ -62,6 +62,17 @@ class VoxelGrid:
         object.__setattr__(self, "point_cloud_range", bounds)
         object.__setattr__(self, "voxel_size", size)
 
+    @classmethod
+    def from_shape(cls, point_cloud_range, shape) -> VoxelGrid:
+        """The grid that cuts ``point_cloud_range`` into ``shape = (X, Y, Z)`` voxels."""
+        bounds = tuple(float(v) for v in point_cloud_range)
+        if len(bounds) != 6 or len(shape) != 3 or any(int(n) < 1 for n in shape):
+            raise ValueError(f"need a 6-number range and 3 positive voxel counts, got {point_cloud_range!r}, {shape!r}")
+        grid = cls(bounds, [(bounds[i + 3] - bounds[i]) / int(shape[i]) for i in range(3)])
+        if grid.shape != tuple(int(n) for n in shape):
+            raise ValueError(f"{tuple(shape)} voxels do not divide range {bounds} evenly")
+        return grid
+
     # ------------------------------------------------------------------ sizes
     @property
     def lower(self) -> tuple[float, float, float]:

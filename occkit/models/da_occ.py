@@ -37,9 +37,8 @@ from occkit.losses import (
 )
 from occkit.models.bev_encoder import BevEncoder, BevEncoderConfig
 from occkit.models.dac import DACBlock
-from occkit.models.flashocc import occupancy_prediction
 from occkit.models.heads.depth import DepthNet, DepthNetConfig, camera_parameters
-from occkit.models.heads.occupancy import OccupancyHead, OccupancyHeadConfig
+from occkit.models.heads.occupancy import OccupancyHead, OccupancyHeadConfig, occupancy_prediction
 from occkit.models.image_encoder import ImageEncoder, ImageEncoderConfig
 from occkit.models.view_transform.lss import (
     PoolingPlan,
@@ -130,18 +129,14 @@ class DirectionAwareOccConfig:
                 raise ValueError(f"{key} = {value} must equal {source} = {wanted}")
 
 
-def _grid(extent: tuple[float, ...], size: tuple[int, int, int]) -> VoxelGrid:
-    return VoxelGrid(extent, [(extent[i + 3] - extent[i]) / size[i] for i in range(3)])
-
-
 class DirectionAwareOcc(nn.Module):
     """``forward(batch) -> ModelOutput`` (occupancy, depth, height); ``loss(output, batch)``; ``predict(batch)``."""
 
     def __init__(self, cfg: DirectionAwareOccConfig) -> None:
         super().__init__()
         self.cfg = cfg
-        self.bev_grid = _grid(cfg.occ_range, (*cfg.bev_size, 1))
-        self.height_grid = _grid(cfg.occ_range, cfg.height_grid_size)
+        self.bev_grid = VoxelGrid.from_shape(cfg.occ_range, (*cfg.bev_size, 1))
+        self.height_grid = VoxelGrid.from_shape(cfg.occ_range, cfg.height_grid_size)
         self.image_encoder = ImageEncoder(cfg.image)
         self.depth_net = DepthNet(cfg.depth_net)
         self.height_net = DepthNet(cfg.height_net)

@@ -23,7 +23,7 @@ from torch import Tensor, nn
 from occkit.geometry.grid import VoxelGrid
 from occkit.models.bev_encoder import BevEncoder, BevEncoderConfig, ConvFuser
 from occkit.models.heads.center import CenterHead, CenterHeadConfig
-from occkit.models.heads.occupancy import OccupancyHead, OccupancyHeadConfig
+from occkit.models.heads.occupancy import OccupancyHead, OccupancyHeadConfig, occupancy_prediction
 from occkit.models.image_encoder import ImageEncoder, ImageEncoderConfig
 from occkit.models.lidar_encoder import LidarEncoder, LidarEncoderConfig
 from occkit.models.range_extension import RangeExtension, RangeExtensionConfig
@@ -159,7 +159,7 @@ class DAOcc(nn.Module):
     def predict(self, batch: Batch, boxes: bool = False) -> OccPrediction:
         """Class ids ``(B, X, Y, Z)`` uint8 and, with ``boxes``, decoded detections in the augmented LiDAR frame."""
         output = self.forward(batch, detect=boxes)
-        prediction = OccPrediction(semantics=output.occupancy.argmax(dim=1).to(torch.uint8))
+        prediction = occupancy_prediction(output.occupancy)
         if boxes and output.detection is not None:
             prediction.boxes, prediction.box_scores, prediction.box_labels = self.detection_head.decode(
                 output.detection

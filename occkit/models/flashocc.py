@@ -20,12 +20,12 @@ import torch
 from torch import Tensor, nn
 
 from occkit.models.bev_encoder import BevEncoder, BevEncoderConfig
-from occkit.models.heads.occupancy import OccupancyHead, OccupancyHeadConfig
+from occkit.models.heads.occupancy import OccupancyHead, OccupancyHeadConfig, occupancy_prediction
 from occkit.models.image_encoder import ImageEncoder, ImageEncoderConfig
 from occkit.models.view_transform.lss import LSSConfig, LSSViewTransform
 from occkit.types import Batch, ModelOutput, OccPrediction
 
-__all__ = ["FlashOccConfig", "FlashOcc", "occupancy_prediction"]
+__all__ = ["FlashOccConfig", "FlashOcc"]
 
 
 @dataclass(frozen=True)
@@ -57,11 +57,6 @@ class FlashOccConfig:
         for key, (value, wanted, source) in checks.items():
             if value != wanted:
                 raise ValueError(f"{key} = {value} must equal {source} = {wanted}")
-
-
-def occupancy_prediction(logits: Tensor) -> OccPrediction:
-    """Class ids ``(B, X, Y, Z)`` uint8 from logits ``(B, K, X, Y, Z)``."""
-    return OccPrediction(semantics=logits.argmax(dim=1).to(torch.uint8))
 
 
 class FlashOcc(nn.Module):

@@ -9,11 +9,13 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import torch
 from torch import Tensor, nn
 
 from occkit.losses import class_weights_from_frequencies, drop_free_cross_entropy, masked_cross_entropy
+from occkit.types import OccPrediction
 
-__all__ = ["OccupancyHeadConfig", "OccupancyHead", "OCC3D_CLASS_FREQUENCIES"]
+__all__ = ["OccupancyHeadConfig", "OccupancyHead", "OCC3D_CLASS_FREQUENCIES", "occupancy_prediction"]
 
 #: Voxel counts per Occ3D class (0..16, 17 = free) over the nuScenes train split, as BEVDet's class balance uses.
 OCC3D_CLASS_FREQUENCIES = (
@@ -42,6 +44,11 @@ class OccupancyHeadConfig:
     """Without the mask: probability of keeping each free voxel in the loss."""
     class_balance: bool = False
     """Weight classes by 1 / ln(frequency + 0.001) with Occ3D's training frequencies (BEVDet)."""
+
+
+def occupancy_prediction(logits: Tensor) -> OccPrediction:
+    """Class ids ``(B, X, Y, Z)`` uint8 from logits ``(B, K, X, Y, Z)``: what every model's ``predict`` returns."""
+    return OccPrediction(semantics=logits.argmax(dim=1).to(torch.uint8))
 
 
 class OccupancyHead(nn.Module):

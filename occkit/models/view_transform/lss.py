@@ -85,12 +85,7 @@ class LSSConfig:
 
     def voxel_grid(self) -> VoxelGrid:
         """The target grid: :attr:`point_cloud_range` cut into :attr:`grid_size` voxels."""
-        lower, upper = self.point_cloud_range[:3], self.point_cloud_range[3:]
-        sizes = [(hi - lo) / n for lo, hi, n in zip(lower, upper, self.grid_size, strict=True)]
-        grid = VoxelGrid(self.point_cloud_range, sizes)
-        if grid.shape != tuple(self.grid_size):
-            raise ValueError(f"grid_size {self.grid_size} does not divide range {self.point_cloud_range} evenly")
-        return grid
+        return VoxelGrid.from_shape(self.point_cloud_range, self.grid_size)
 
 
 @dataclass

@@ -133,11 +133,7 @@ class ProjectionViewTransform(nn.Module):
 
     def __init__(self, cfg: ProjectionConfig) -> None:
         super().__init__()
-        lower, upper = cfg.point_cloud_range[:3], cfg.point_cloud_range[3:]
-        sizes = [(hi - lo) / n for lo, hi, n in zip(lower, upper, cfg.grid_size, strict=True)]
-        self.grid = VoxelGrid(cfg.point_cloud_range, sizes)
-        if self.grid.shape != tuple(cfg.grid_size):
-            raise ValueError(f"grid_size {cfg.grid_size} does not divide range {cfg.point_cloud_range} evenly")
+        self.grid = VoxelGrid.from_shape(cfg.point_cloud_range, cfg.grid_size)
         self.register_buffer("centers", self.grid.centers().reshape(-1, 3), persistent=False)  # (X*Y*Z, 3)
         self.reduce = nn.Conv2d(cfg.in_channels, cfg.out_channels, 1) if cfg.in_channels != cfg.out_channels else None
         self.cfg = cfg
