@@ -16,6 +16,7 @@ with one thread, so that runs compare bitwise and two ranks share the two cores 
 from __future__ import annotations
 
 import contextlib
+import copy
 import hashlib
 import json
 import os
@@ -667,3 +668,21 @@ def test_unwritable_out_as_root(earlier_run, data, tmp_path, capsys):
         _assert_unwritable_out_is_one_error(locked, latest_checkpoint(earlier_run), data, capsys)
     finally:
         subprocess.run(["chattr", "-i", str(locked)], check=True)
+
+
+def test_a_checkpoint_from_before_a_new_option_is_compatible_while_the_option_keeps_its_default():
+    from occkit import zoo
+    from occkit.engine.checkpoint import check_compatible
+
+    current = zoo.experiment("flashocc_m0").to_dict()["model"]
+    older = copy.deepcopy(current)
+    del older["occupancy"]["lovasz_weight"]  # written before the option existed
+    payload = {"architecture": "flashocc", "experiment": {"model": older}}
+    check_compatible(payload, "flashocc", current, "old.pt")
+    changed = copy.deepcopy(current)
+    changed["occupancy"]["lovasz_weight"] = 0.5
+    with pytest.raises(ValueError, match=r"old\.pt .*model\.occupancy\.lovasz_weight is 0\.0 in the checkpoint"):
+        check_compatible(payload, "flashocc", changed, "old.pt")
+    older["occupancy"]["retired_option"] = 1  # an option since removed: compared as saved, so named
+    with pytest.raises(ValueError, match="model.occupancy.retired_option is 1 in the checkpoint but None here"):
+        check_compatible(payload, "flashocc", current, "old.pt")

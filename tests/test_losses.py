@@ -225,6 +225,21 @@ def test_lovasz_gradcheck():
     assert torch.autograd.gradcheck(lambda p: lovasz_softmax(p, labels, mask), (probs,))
 
 
+def test_occupancy_head_adds_a_weighted_lovasz_term_over_the_cross_entropy_voxels():
+    generator = torch.Generator().manual_seed(5)
+    logits = torch.randn(2, 18, 3, 4, 16, generator=generator)
+    labels = torch.randint(0, 18, (2, 3, 4, 16), generator=generator)
+    mask = torch.rand(2, 3, 4, 16, generator=generator) > 0.3
+    plain = OccupancyHead(OccupancyHeadConfig()).loss(logits, labels, mask)
+    assert set(plain) == {"occupancy"}
+    terms = OccupancyHead(OccupancyHeadConfig(lovasz_weight=0.5)).loss(logits, labels, mask)
+    assert set(terms) == {"occupancy", "lovasz"}
+    torch.testing.assert_close(terms["occupancy"], plain["occupancy"])
+    torch.testing.assert_close(terms["lovasz"], 0.5 * lovasz_softmax(logits.softmax(dim=1), labels, mask))
+    unmasked = OccupancyHead(OccupancyHeadConfig(use_mask=False, lovasz_weight=1.0)).loss(logits, labels, None)
+    torch.testing.assert_close(unmasked["lovasz"], lovasz_softmax(logits.softmax(dim=1), labels))
+
+
 # --- scene-class affinity (MonoScene) --------------------------------------------------------------------------------
 
 

@@ -152,11 +152,28 @@ def check_compatible(payload: dict[str, Any], architecture: str, model_config: d
     """Raise ``ValueError`` naming the first difference when a checkpoint holds another model or config."""
     if payload["architecture"] != architecture:
         raise ValueError(f"{path} holds a {payload['architecture']} model, not {architecture}")
-    saved = payload["experiment"]["model"]
+    saved = _with_defaults(architecture, payload["experiment"]["model"])
     differences = _differences(saved, model_config, "model")
     if differences:
         raise ValueError(f"{path} was trained with another model config: {differences[0]}"
                          + (f" (and {len(differences) - 1} more differences)" if len(differences) > 1 else ""))
+
+
+def _with_defaults(architecture: str, saved: dict) -> dict:
+    """The saved model config with the options added since it was written filled in at the architecture's
+    defaults, so that a new option left at its default is no difference (a removed option stays, and is named)."""
+    from occkit.config import to_dict
+    from occkit.engine.experiment import model_config_class
+
+    return _fill(saved, to_dict(model_config_class(architecture, "checkpoint")()))
+
+
+def _fill(saved: Any, defaults: Any) -> Any:
+    if not (isinstance(saved, dict) and isinstance(defaults, dict)):
+        return saved
+    filled = {name: value for name, value in defaults.items() if name not in saved}
+    filled.update({name: _fill(value, defaults.get(name)) for name, value in saved.items()})
+    return filled
 
 
 def _differences(saved: Any, current: Any, key: str) -> list[str]:

@@ -94,7 +94,8 @@ class Experiment:
                 "train": to_dict(self.train)}  # fmt: skip
 
 
-def _model_class(architecture: str, where: str) -> type:
+def model_config_class(architecture: str, where: str) -> type:
+    """The model config dataclass of an architecture; ``where`` names the source in the error."""
     from occkit.zoo import ARCHITECTURES
 
     if architecture not in ARCHITECTURES:
@@ -109,7 +110,7 @@ def experiment_from_dict(data: Any, where: str = "experiment", overrides: Sequen
     unknown = set(data) - {"architecture", "model", "data", "train"}
     if unknown or "architecture" not in data:
         raise ConfigError(f"{where}: an experiment has the keys architecture, model, data, train; got {sorted(data)}")
-    model_class = _model_class(data["architecture"], where)
+    model_class = model_config_class(data["architecture"], where)
     parsed = Experiment(
         architecture=data["architecture"],
         model=from_dict(model_class, data.get("model") or {}, f"{where}: model"),

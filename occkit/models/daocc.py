@@ -146,7 +146,7 @@ class DAOcc(nn.Module):
         """Weighted loss terms; their sum is the training loss."""
         if batch.voxel_semantics is None:
             raise ValueError("the occupancy loss needs batch.voxel_semantics")
-        losses = {"occupancy": self.occupancy_head.loss(output.occupancy, batch.voxel_semantics, batch.mask_camera)}
+        losses = self.occupancy_head.loss(output.occupancy, batch.voxel_semantics, batch.mask_camera)
         if output.detection is not None:
             if batch.boxes is None:
                 raise ValueError("the detection loss needs batch.boxes (DatasetConfig.boxes = True)")

@@ -87,7 +87,7 @@ class FlashOcc(nn.Module):
         """The occupancy loss (FlashOcc M0/M1 have no depth supervision)."""
         if batch.voxel_semantics is None:
             raise ValueError("the occupancy loss needs batch.voxel_semantics")
-        return {"occupancy": self.occupancy_head.loss(output.occupancy, batch.voxel_semantics, batch.mask_camera)}
+        return self.occupancy_head.loss(output.occupancy, batch.voxel_semantics, batch.mask_camera)
 
     @torch.no_grad()
     def predict(self, batch: Batch) -> OccPrediction:

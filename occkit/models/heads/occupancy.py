@@ -2,7 +2,8 @@
 
 conv3x3 + ReLU, then per BEV cell an MLP ``Linear(C, 2C) -> Softplus -> Linear(2C, Z * K)`` whose outputs are the
 ``Z`` voxels of the column, channel ``z * K + k`` as the references lay them out. The loss is the camera-masked
-cross-entropy, or without the mask the drop-free cross-entropy (DAOcc), optionally class-balanced (BEVDet).
+cross-entropy, or without the mask the drop-free cross-entropy (DAOcc), optionally class-balanced (BEVDet), plus an
+optional Lovasz-softmax term over the same voxels.
 """
 
 from __future__ import annotations
@@ -12,7 +13,12 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor, nn
 
-from occkit.losses import class_weights_from_frequencies, drop_free_cross_entropy, masked_cross_entropy
+from occkit.losses import (
+    class_weights_from_frequencies,
+    drop_free_cross_entropy,
+    lovasz_softmax,
+    masked_cross_entropy,
+)
 from occkit.types import OccPrediction
 
 __all__ = ["OccupancyHeadConfig", "OccupancyHead", "OCC3D_CLASS_FREQUENCIES", "occupancy_prediction"]
@@ -44,6 +50,9 @@ class OccupancyHeadConfig:
     """Without the mask: probability of keeping each free voxel in the loss."""
     class_balance: bool = False
     """Weight classes by 1 / ln(frequency + 0.001) with Occ3D's training frequencies (BEVDet)."""
+    lovasz_weight: float = 0.0
+    """Weight of a Lovasz-softmax term (the IoU surrogate of OccFormer and others) over the voxels the cross-entropy
+    counts, masked or all; 0 (DAOcc, FlashOcc): cross-entropy only."""
 
 
 def occupancy_prediction(logits: Tensor) -> OccPrediction:
@@ -77,10 +86,17 @@ class OccupancyHead(nn.Module):
         logits = self.predictor(columns).view(batch, x, y, self.cfg.height, self.cfg.num_classes)  # (B, X, Y, Z, K)
         return logits.permute(0, 4, 1, 2, 3)  # (B, K, X, Y, Z)
 
-    def loss(self, logits: Tensor, labels: Tensor, mask_camera: Tensor | None) -> Tensor:
-        """Scalar loss of ``logits (B, K, X, Y, Z)`` against ``labels (B, X, Y, Z)``."""
+    def loss(self, logits: Tensor, labels: Tensor, mask_camera: Tensor | None) -> dict[str, Tensor]:
+        """Loss terms of ``logits (B, K, X, Y, Z)`` against ``labels (B, X, Y, Z)``: ``occupancy`` (cross-entropy)
+        and, with ``lovasz_weight``, ``lovasz`` (already weighted)."""
+        mask = None
         if self.cfg.use_mask:
             if mask_camera is None:
                 raise ValueError("the occupancy loss uses mask_camera (use_mask=True) but the batch has none")
-            return masked_cross_entropy(logits, labels, mask_camera, self.class_weights)
-        return drop_free_cross_entropy(logits, labels, self.cfg.free_index, self.cfg.keep_free)
+            mask = mask_camera.bool()
+            losses = {"occupancy": masked_cross_entropy(logits, labels, mask_camera, self.class_weights)}
+        else:
+            losses = {"occupancy": drop_free_cross_entropy(logits, labels, self.cfg.free_index, self.cfg.keep_free)}
+        if self.cfg.lovasz_weight > 0:
+            losses["lovasz"] = self.cfg.lovasz_weight * lovasz_softmax(logits.softmax(dim=1), labels, mask)
+        return losses
