@@ -78,8 +78,9 @@ def _daocc_lidar() -> Any:
 
 
 def _daocc_tiny() -> Any:
-    """DAOcc's architecture scaled down for CPUs: ResNet-18 (one block per stage), +-43.2 m at 0.15 m voxels
-    (72 x 72 BEV of 1.2 m cells), narrow channels; the Occ3D output grid is unchanged."""
+    """DAOcc's architecture scaled down for CPUs: ResNet-18 (one block per stage), +-43.2 m at 0.15 m voxels with a
+    stride-4 sparse encoder (a 144 x 144 BEV of 0.6 m cells, the paper's cell size), narrow channels, and a Lovasz
+    term beside the cross-entropy; the Occ3D output grid is unchanged."""
     from occkit.models.bev_encoder import BevEncoderConfig
     from occkit.models.heads.center import CenterHeadConfig
     from occkit.models.heads.occupancy import OccupancyHeadConfig
@@ -93,29 +94,30 @@ def _daocc_tiny() -> Any:
     config_class, _ = _daocc_classes()
     return config_class(
         image=ImageEncoderConfig(depth=18, blocks=(1, 1, 1, 1), neck_channels=64),
-        view=ProjectionConfig(point_cloud_range=lidar_range, grid_size=(72, 72, 4), in_channels=64, out_channels=16),
+        view=ProjectionConfig(point_cloud_range=lidar_range, grid_size=(144, 144, 4), in_channels=64, out_channels=16),
         lidar=LidarEncoderConfig(
             point_cloud_range=lidar_range,
             voxel_size=(0.15, 0.15, 0.2),
             max_voxels_train=60000,
             max_voxels_test=80000,
             base_channels=8,
-            encoder_channels=((8, 8, 16), (16, 16, 32), (32, 32, 32), (32, 32)),
-            output_channels=32,
+            encoder_channels=((8, 8, 16), (16, 16, 32), (32, 32)),
+            downsample_paddings=((1, 1, 1), (1, 1, 1)),
+            output_channels=16,
         ),
-        fusion_channels=64,
-        bev=BevEncoderConfig(in_channels=64, blocks=(1, 1, 1), channels=(32, 64, 128), neck_channels=64),
+        fusion_channels=32,
+        bev=BevEncoderConfig(in_channels=32, blocks=(1, 1, 1), strides=(1, 2, 2), channels=(32, 64, 128),
+                             neck_channels=64),
         range_extension=RangeExtensionConfig(bev_range=(-extent, -extent, extent, extent), in_channels=64,
                                              out_channels=32),
-        occupancy=OccupancyHeadConfig(in_channels=32, hidden_channels=32, class_balance=True),
+        occupancy=OccupancyHeadConfig(in_channels=32, hidden_channels=32, class_balance=True, lovasz_weight=1.0),
         detection=CenterHeadConfig(
-            in_channels=64, share_conv_channels=16, head_conv_channels=16, point_cloud_range=lidar_range,
-            voxel_size=(0.15, 0.15),
+            in_channels=64, share_conv_channels=16, head_conv_channels=8, point_cloud_range=lidar_range,
+            voxel_size=(0.15, 0.15), out_size_factor=4,
         ),
     )  # fmt: skip
 
 
-# --------------------------------------------------------------------------------------------- FlashOcc entries
 def _flashocc_m0() -> Any:
     """FlashOcc M0: ResNet-50 C4/C5 + FPN at 256 x 704, 44 depth bins, 64 x 200 x 200 BEV, 128-channel C2H head;
     31.95 mIoU, 39.94 M parameters."""
@@ -140,7 +142,8 @@ def _flashocc_m1() -> Any:
 
 def _flashocc_tiny() -> Any:
     """FlashOcc's architecture scaled down for CPUs: ResNet-18 (one block per stage) C4/C5 at 128 x 352, 22 depth
-    bins, 16 context channels, narrow BEV encoder; the Occ3D output grid is unchanged."""
+    bins, 16 context channels, narrow BEV encoder, and a Lovasz term beside the cross-entropy (as daocc_tiny); the
+    Occ3D output grid is unchanged."""
     from occkit.models.bev_encoder import BevEncoderConfig
     from occkit.models.heads.occupancy import OccupancyHeadConfig
     from occkit.models.image_encoder import ImageEncoderConfig
@@ -153,7 +156,7 @@ def _flashocc_tiny() -> Any:
         lss=LSSConfig(image_size=(128, 352), depth_range=(1.0, 45.0, 2.0), in_channels=64, context_channels=16),
         bev=BevEncoderConfig(in_channels=16, strides=(2, 2, 2), channels=(32, 64, 128), blocks=(1, 1, 1),
                              neck_channels=32, neck_extra_upsample=2),
-        occupancy=OccupancyHeadConfig(in_channels=32, hidden_channels=32, class_balance=True),
+        occupancy=OccupancyHeadConfig(in_channels=32, hidden_channels=32, class_balance=True, lovasz_weight=1.0),
     )  # fmt: skip
 
 

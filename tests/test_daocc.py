@@ -42,25 +42,26 @@ def test_shapes_at_every_stage(synthetic_batch):
     plan = model.view_transform.plan(batch.intrinsics, batch.cam2ego, batch.img_aug, batch.lidar2ego,
                                      batch.bev_aug, image_size=(64, 176))
     camera_bev = model.view_transform(features, plan)
-    assert tuple(camera_bev.shape) == (2, 16 * 4, 72, 72)
+    assert tuple(camera_bev.shape) == (2, 16 * 4, 144, 144)
     lidar_bev = model.lidar_encoder(batch.points, batch.num_points)
-    assert tuple(lidar_bev.shape) == (2, model.lidar_encoder.out_channels, 72, 72)
+    assert tuple(lidar_bev.shape) == (2, 16 * 5, 144, 144)  # z: 41 -> 21 -> 11, then conv_out -> 5
+    assert model.lidar_encoder.out_channels == 16 * 5
     bev = model.bev_encoder(model.fuser([camera_bev, lidar_bev]))
-    assert tuple(bev.shape) == (2, 64, 72, 72)
+    assert tuple(bev.shape) == (2, 64, 144, 144)
     occ_bev = model.range_extension(bev, batch.lidar2ego, batch.bev_aug, batch.occ_aug)
     assert tuple(occ_bev.shape) == (2, 32, 200, 200)
     output = model(batch)
     assert tuple(output.occupancy.shape) == (2, 18, 200, 200, 16)
     assert len(output.detection) == 6
-    assert tuple(output.detection[0]["heatmap"].shape) == (2, 1, 72, 72)
-    assert tuple(output.detection[5]["heatmap"].shape) == (2, 2, 72, 72)
+    assert tuple(output.detection[0]["heatmap"].shape) == (2, 1, 144, 144)
+    assert tuple(output.detection[5]["heatmap"].shape) == (2, 2, 144, 144)
 
 
 def test_every_parameter_gets_a_gradient(synthetic_batch):
     model = tiny().train()
     batch = synthetic_batch(batch_size=1)  # an odd number of boxes per task: L1 signs at a bias cannot cancel
     losses = model.loss(model(batch), batch)
-    assert set(losses) == {"occupancy", "det_heatmap", "det_bbox"}
+    assert set(losses) == {"occupancy", "lovasz", "det_heatmap", "det_bbox"}
     sum(losses.values()).backward()
     missing = parameters_without_gradient(model)
     assert not missing, f"no gradient for {missing}"
@@ -112,8 +113,8 @@ def test_detection_branch_is_detachable(synthetic_batch):
 
 def test_inconsistent_channels_are_clear_errors():
     _, cfg = zoo.model_config("daocc_tiny")
-    with pytest.raises(ValueError, match="bev.in_channels = 64 must equal fusion_channels = 32"):
-        dataclasses.replace(cfg, fusion_channels=32)
+    with pytest.raises(ValueError, match="bev.in_channels = 32 must equal fusion_channels = 64"):
+        dataclasses.replace(cfg, fusion_channels=64)
     with pytest.raises(ValueError, match="camera branch"):
         DAOccConfig(image=None, lidar=None)
 

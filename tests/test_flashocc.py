@@ -36,8 +36,8 @@ def test_shapes_and_every_parameter_gets_a_gradient(synthetic_batch):
     assert tuple(output.depth.shape) == (2, 2, 22, 4, 11)
     torch.testing.assert_close(output.depth.sum(dim=2), torch.ones(2, 2, 4, 11))
     losses = model.loss(output, batch)
-    assert set(losses) == {"occupancy"}
-    losses["occupancy"].backward()
+    assert set(losses) == {"occupancy", "lovasz"}
+    sum(losses.values()).backward()
     missing = parameters_without_gradient(model)
     assert not missing, f"no gradient for {missing}"
 

@@ -31,7 +31,6 @@ from occkit.geometry.grid import VoxelGrid
 from occkit.losses import (
     depth_bce,
     height_bce,
-    masked_cross_entropy,
     scene_class_affinity_geometric,
     scene_class_affinity_semantic,
 )
@@ -212,7 +211,9 @@ class DirectionAwareOcc(nn.Module):
         return {
             "depth": w.depth * depth_bce(output.depth, batch.depth_maps, self.cfg.depth_range),
             "height": w.height * height_bce(output.height, batch.height_maps, self.cfg.height_range),
-            "occupancy": w.occupancy * masked_cross_entropy(output.occupancy, labels, mask),
+            # The head's own loss: its class balance and optional Lovasz term apply as in the other models.
+            **{name: (w.occupancy if name == "occupancy" else 1.0) * term
+               for name, term in self.occupancy_head.loss(output.occupancy, labels, mask).items()},
             "semantic_affinity": w.semantic_affinity * scene_class_affinity_semantic(output.occupancy, labels, mask),
             "geometric_affinity": w.geometric_affinity * scene_class_affinity_geometric(
                 output.occupancy, labels, self.cfg.occupancy.free_index, mask
