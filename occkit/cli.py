@@ -441,7 +441,7 @@ def _add_demo(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--data", type=Path, default=Path("data/demo"),
                         help="synthetic dataset, written first if absent (default data/demo)")
     parser.add_argument("--steps", type=int, default=None,
-                        help="optimizer steps per model (default: the demo's, about 7 minutes each on 2 cores)")
+                        help="optimizer steps per model (default: the demo's, 700 and 400)")
 
 
 def _run_demo(args: argparse.Namespace) -> int:
@@ -450,6 +450,130 @@ def _run_demo(args: argparse.Namespace) -> int:
     models = None if args.steps is None else {name: args.steps for name in DEMO_MODELS}
     report = run_demo(args.out, args.data, models)
     print(f"report: {report}")
+    return 0
+
+
+# ----------------------------------------------------------------------------------------------------- export
+def _add_export(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--model", required=True, help="zoo name, e.g. flashocc_m0, da_occ, daocc")
+    parser.add_argument("--ckpt", type=Path, default=None,
+                        help="checkpoint of that model (default: its random initialisation, seeded)")
+    parser.add_argument("--data", type=Path, default=None,
+                        help="nuScenes-layout dataset whose rig the graph is made for (default: a one-scene "
+                             "synthetic world generated in a temporary folder)")
+    parser.add_argument("--sample", type=int, default=1, help="key frame of --data used as the reference (default 1)")
+    parser.add_argument("--opset", type=int, default=18, help="ONNX opset, 18 or newer (default 18)")
+    parser.add_argument("--out", type=Path, required=True, help="the .onnx file; the report goes to FILE.json")
+    parser.add_argument("--no-check", action="store_true", help="skip the onnxruntime parity check and timings")
+    parser.add_argument("--repeats", type=int, default=3, help="timed runs for the latencies (default 3)")
+
+
+def _run_export(args: argparse.Namespace) -> int:
+    from occkit.export import ExportError, export_model
+
+    print(f"exporting {args.model} to {args.out} ...")
+    try:
+        report = export_model(args.model, args.out, checkpoint=args.ckpt, data=args.data, opset=args.opset,
+                              check=not args.no_check, repeats=args.repeats, sample=args.sample)  # fmt: skip
+    except ExportError as error:
+        print(f"occkit export: error: {error}", file=sys.stderr)
+        return 1
+    if report["config_difference"]:
+        print(f"note: {report['config_difference']}")
+    ops = report["op_types"]
+    print(f"wrote {', '.join(report['files'])}: opset {report['opset']}, {sum(ops.values())} nodes, "
+          f"standard operators only ({', '.join(ops)})")
+    if "parity" not in report:
+        print(f"wrote {report['json']}")
+        return 0
+    parity, latency = report["parity"], report["latency_ms"]
+    print(f"parity on {report['sample']['token']}: max |logit difference| {parity['max_abs_diff']:.2e} "
+          f"(<= {parity['tolerance']['max_abs_diff']:g}), arg-max agreement {100 * parity['argmax_agreement']:.4f}% "
+          f"(>= {100 * parity['tolerance']['argmax_agreement']:g}%): {'passed' if parity['passed'] else 'FAILED'}")
+    print(f"median latency ({latency['threads']} threads): onnxruntime {latency['onnxruntime']:.1f} ms, "
+          f"PyTorch same network {latency['torch_network']:.1f} ms, PyTorch model forward "
+          f"{latency['torch_model']:.1f} ms" + (f", voxelization + rulebooks {latency['preprocess']:.1f} ms"
+                                                 if "preprocess" in latency else ""))
+    print(f"wrote {report['json']}")
+    return 0 if parity["passed"] else 1
+
+
+# ----------------------------------------------------------------------------------------------------- bench
+def _optimizations(text: str) -> str | tuple[str, ...]:
+    """``auto``, ``none`` (no step) or a comma-separated list of fast-path steps."""
+    if text == "auto":
+        return "auto"
+    if text == "none":
+        return ()
+    return tuple(name.strip() for name in text.split(",") if name.strip())
+
+
+def _add_bench(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--model", required=True, help="zoo name, e.g. flashocc_m0, da_occ, daocc")
+    parser.add_argument("--device", default="cpu", help="cpu, cuda or cuda:N (default cpu)")
+    parser.add_argument("--precision", choices=("fp32", "bf16", "fp16"), default="fp32",
+                        help="fp32, or bf16 / fp16 autocast (fp16 on CUDA only); the GEMM yardstick uses the same")
+    parser.add_argument("--batch", type=int, default=1, help="copies of the key frame per pass (default 1)")
+    parser.add_argument("--iters", type=int, default=10, help="timed passes (default 10)")
+    parser.add_argument("--warmup", type=int, default=2, help="untimed passes first (default 2)")
+    parser.add_argument("--threads", type=int, default=None, help="CPU threads (default: PyTorch's)")
+    parser.add_argument("--data", type=Path, default=None,
+                        help="dataset root to take the last key frame from (default: a one-scene 1600x900 "
+                             "synthetic world, simulated once into data/bench-1600x900)")  # fmt: skip
+    parser.add_argument("--optimizations", type=_optimizations, default="auto", metavar="auto|none|LIST",
+                        help="fast path: auto (default) measures fixed_calibration, fold_bn, channels_last and "
+                             "compile one by one and keeps those that speed up; none; or a comma list to apply")
+    parser.add_argument("--gemm-size", type=int, default=None,
+                        help="n of the n x n GEMM yardstick (default 4096 on CPU, 8192 on CUDA)")
+    parser.add_argument("--miou", type=float, default=None, help="the model's mIoU, for RT-mIoU@10/15/20")
+    parser.add_argument("--out", type=Path, required=True, help="JSON file for the results")
+
+
+def _run_bench(args: argparse.Namespace) -> int:
+    from occkit.bench import BenchConfig, format_report, run_bench
+
+    config = BenchConfig(model=args.model, device=args.device, precision=args.precision, batch_size=args.batch,
+                         iters=args.iters, warmup=args.warmup, threads=args.threads, optimizations=args.optimizations,
+                         gemm_size=args.gemm_size, data=None if args.data is None else str(args.data),
+                         miou=args.miou)  # fmt: skip
+    result = run_bench(config)
+    print(format_report(result))
+    _write_json(args.out, result)
+    return 0
+
+
+# ----------------------------------------------------------------------------------------------------- viz
+def _add_viz(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--data", type=Path, required=True, help="dataset root (nuScenes + Occ3D layout)")
+    parser.add_argument("--split", default="val", help="split to take frames from (default val)")
+    parser.add_argument("--version", default="v1.0-synth", help="table folder under --data (default v1.0-synth)")
+    frames = parser.add_mutually_exclusive_group()
+    frames.add_argument("--frames", type=int, default=3, help="frames spread evenly over the split (default 3)")
+    frames.add_argument("--token", nargs="+", default=(), metavar="TOKEN", help="sample tokens to render instead")
+    predictions = parser.add_mutually_exclusive_group()
+    predictions.add_argument("--pred", type=Path, metavar="DIR",
+                             help="folder of Occ3D <token>.npz predictions (as occkit predict writes them)")
+    predictions.add_argument("--ckpt", type=Path, metavar="FILE", help="predict on the fly with this checkpoint")
+    parser.add_argument("--device", default="cpu", help="where --ckpt's model runs (default cpu)")
+    parser.add_argument("--sweeps", type=int, default=0,
+                        help="earlier LiDAR sweeps added to the key frame in the LiDAR overlay (default 0)")
+    parser.add_argument("--display-width", type=int, default=800,
+                        help="camera images wider than this are shown resized to it (default 800 px)")
+    parser.add_argument("--dpi", type=int, default=100, help="PNG resolution (default 100)")
+    parser.add_argument("--colors", type=int, default=None, metavar="N",
+                        help="store PNGs with a palette of N colours (<= 256): files several times smaller")
+    parser.add_argument("--out", type=Path, required=True, help="folder for the PNGs, index.md/html and index.json")
+
+
+def _run_viz(args: argparse.Namespace) -> int:
+    from occkit.viz.run import VizConfig, render_frames
+
+    config = VizConfig(data=str(args.data), out=str(args.out), split=args.split, version=args.version,
+                       frames=args.frames, tokens=tuple(args.token),
+                       pred=None if args.pred is None else str(args.pred),
+                       ckpt=None if args.ckpt is None else str(args.ckpt), device=args.device, sweeps=args.sweeps,
+                       display_width=args.display_width, dpi=args.dpi, colors=args.colors)  # fmt: skip
+    render_frames(config)
     return 0
 
 
@@ -473,6 +597,12 @@ COMMANDS: dict[str, Command] = {
     "eval": ("score a checkpoint on a dataset split: mIoU, IoU, RayIoU, per-class table and plots", _add_eval,
              _run_eval),
     "predict": ("write Occ3D-format <token>.npz predictions of a checkpoint", _add_predict, _run_predict),
+    "export": ("export a model to ONNX (standard operators, one fixed rig) and check it in onnxruntime", _add_export,
+               _run_export),
+    "bench": ("inference latency, FPS, per-stage times, MACs and GEMM efficiency of a model; the fast path",
+              _add_bench, _run_bench),
+    "viz": ("render ground truth, predictions and cameras with projected LiDAR / voxels to PNGs and a page",
+            _add_viz, _run_viz),
     "demo": ("the whole system on a laptop: synthetic world, train two tiny models, evaluate, render, report",
              _add_demo, _run_demo),
 }

@@ -19,7 +19,6 @@ from occkit.metrics import (
     geometry_iou,
     iou_from_confusion,
     miou,
-    rt_miou,
     surroundocc_metrics,
 )
 from occkit.metrics.confusion import _confusion_torch
@@ -187,13 +186,6 @@ def test_iou_conventions():
     assert np.isnan(iou_from_confusion(cm, nan_without_gt=True)[1])
     assert np.isnan(iou_from_confusion(np.zeros((3, 3)))).all()
     assert math.isnan(miou(np.zeros((3, 3)), classes=range(2)))
-
-
-def test_rt_miou():
-    assert rt_miou(0.4, fps=30, k=60) == pytest.approx(0.2)
-    assert rt_miou(0.4, fps=90, k=60) == pytest.approx(0.4)
-    with pytest.raises(ValueError):
-        rt_miou(0.4, fps=30, k=0)
 
 
 def test_distance_bins():

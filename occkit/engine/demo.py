@@ -1,4 +1,4 @@
-"""``occkit demo``: the whole system on a laptop CPU, end to end, in about a quarter of an hour.
+"""``occkit demo``: the whole system on a laptop CPU, end to end, in under 20 minutes.
 
 1. Write a small synthetic world (train scenes and held-out validation scenes) if the data folder is absent.
 2. Train ``daocc_tiny`` (camera + LiDAR) and ``flashocc_tiny`` (camera only) on the training scenes.
@@ -18,8 +18,8 @@ import numpy as np
 
 __all__ = ["run_demo", "DEMO_MODELS", "DEMO_WORLD"]
 
-#: Zoo entries the demo trains, with their optimizer steps (about 7 minutes each on 2 CPU cores).
-DEMO_MODELS: dict[str, int] = {"daocc_tiny": 900, "flashocc_tiny": 900}
+#: Zoo entries the demo trains, with their optimizer steps (about 12 and 2 minutes on 2 CPU cores).
+DEMO_MODELS: dict[str, int] = {"daocc_tiny": 700, "flashocc_tiny": 400}
 #: The synthetic world of the demo: 10 scenes of 24 key frames at 400 x 225 (the last 2-3 scenes held out).
 DEMO_WORLD = {"scenes": 10, "frames": 24, "image_size": (400, 225), "seed": 1}
 
@@ -68,7 +68,7 @@ def _render(models: dict, datasets: dict, out: Path, frames: int = 3) -> Path:
     import torch
 
     from occkit.data.collate import collate
-    from occkit.sim.preview import bev_image
+    from occkit.viz.bev import bev_image
 
     first = next(iter(datasets.values()))
     picks = np.linspace(0, len(first) - 1, frames).round().astype(int)

@@ -7,10 +7,10 @@ from occkit.metrics.confusion import (
     geometry_iou,
     iou_from_confusion,
     miou,
-    rt_miou,
     surroundocc_metrics,
 )
 from occkit.metrics.rayiou import RAYIOU_THRESHOLDS, cast_rays_exact, ray_directions, rayiou
+from occkit.metrics.realtime import RT_MIOU_RATES, rt_miou, rt_miou_table
 
 __all__ = [
     "OccupancyMetric",
@@ -20,6 +20,8 @@ __all__ = [
     "iou_from_confusion",
     "miou",
     "rt_miou",
+    "rt_miou_table",
+    "RT_MIOU_RATES",
     "surroundocc_metrics",
     "RAYIOU_THRESHOLDS",
     "cast_rays_exact",

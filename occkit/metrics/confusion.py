@@ -4,8 +4,8 @@ Everything here agrees value for value with the CVPR 2023 occupancy challenge's 
 a ``(K, K)`` int64 confusion matrix indexed ``[gt][pred]`` over the voxels a mask keeps, per-class IoU
 ``diag / (row + col - diag)`` with NaN for a class absent from both GT and prediction, and mIoU the nanmean over the
 semantic classes 0..16 (17 = free is counted but not averaged). Also provided: the SparseOcc variant (NaN for every
-class without GT voxels), geometry IoU (occupied vs free), the SurroundOcc protocol (0 = empty), DA-Occ's
-RT-mIoU@K and distance-binned masks.
+class without GT voxels), geometry IoU (occupied vs free), the SurroundOcc protocol (0 = empty) and
+distance-binned masks. DA-Occ's RT-mIoU@K is in :mod:`occkit.metrics.realtime`.
 
 Counting is one pass of a compiled kernel over uint8 labels, so the 200 x 200 x 16 Occ3D frame never goes through
 boolean-mask copies or int64 code arrays; CUDA tensors are counted on the device with ``torch.bincount``.
@@ -30,7 +30,6 @@ __all__ = [
     "geometry_iou",
     "OccupancyMetric",
     "surroundocc_metrics",
-    "rt_miou",
     "distance_bins",
 ]
 
@@ -298,15 +297,6 @@ def surroundocc_metrics(cm17) -> dict:
         "miou": miou(cm, classes=range(1, 17)),
         "per_class_iou": iou_from_confusion(cm),
     }
-
-
-def rt_miou(miou: float, fps: float, k: float) -> float:
-    """DA-Occ's RT-mIoU@K: mIoU scaled down by how far the frame rate falls short of K fps, ``miou * min(fps/K, 1)``."""
-    if k <= 0:
-        raise ValueError(f"K must be a positive frame rate, got {k}")
-    if fps < 0:
-        raise ValueError(f"fps must be non-negative, got {fps}")
-    return miou * min(fps / k, 1.0)
 
 
 def distance_bins(grid: VoxelGrid = OCC3D_GRID, edges: Sequence[float] = (0, 20, 40)) -> np.ndarray:

@@ -11,38 +11,10 @@ from pathlib import Path
 
 import numpy as np
 
-from occkit.classes import OCC3D_COLORS
+from occkit.viz.bev import bev_image
+from occkit.viz.cameras import SURROUND_LAYOUT
 
-__all__ = ["bev_image", "contact_sheet"]
-
-# Camera tiles as a driver would see them: front row left to right, back row mirrored (looking backwards).
-_LAYOUT = (("CAM_FRONT_LEFT", "CAM_FRONT", "CAM_FRONT_RIGHT"), ("CAM_BACK_LEFT", "CAM_BACK", "CAM_BACK_RIGHT"))
-
-
-def bev_image(semantics: np.ndarray, mask: np.ndarray | None = None, free_index: int = 17) -> np.ndarray:
-    """Top-down colour image of occupancy labels: the class of the highest occupied voxel in each column.
-
-    Args:
-        semantics: ``(X, Y, Z)`` uint8 labels (ego x forward, y left).
-        mask: optional ``(X, Y, Z)`` visibility mask; columns with no visible voxel are drawn dark.
-        free_index: label of free space.
-
-    Returns:
-        ``(X, Y, 3)`` uint8 image with forward (+x) up and left (+y) on the left.
-    """
-    occupied = semantics != free_index
-    if mask is not None:
-        occupied &= mask.astype(bool)
-    depth = semantics.shape[2]
-    top = depth - 1 - np.argmax(occupied[:, :, ::-1], axis=2)  # highest occupied z per column
-    top_class = np.take_along_axis(semantics, top[:, :, None], axis=2)[:, :, 0]
-    palette = np.array(OCC3D_COLORS, dtype=np.uint8)
-    image = palette[np.minimum(top_class, len(palette) - 1)]
-    image[~occupied.any(axis=2)] = (30, 30, 30)
-    # Shade by height so that objects stand out from the ground they stand on.
-    shade = 0.6 + 0.4 * (top / max(depth - 1, 1))
-    image = (image * shade[:, :, None]).astype(np.uint8)
-    return image[::-1, ::-1]
+__all__ = ["contact_sheet"]
 
 
 def contact_sheet(root: str | Path, out: str | Path, samples: int = 3, scene: str | None = None) -> Path:
@@ -71,7 +43,7 @@ def contact_sheet(root: str | Path, out: str | Path, samples: int = 3, scene: st
     figure = plt.figure(figsize=(20, 4.4 * len(chosen)), dpi=100)
     grid = figure.add_gridspec(2 * len(chosen), 4, width_ratios=(1, 1, 1, 1.15), wspace=0.02, hspace=0.02)
     for row, frame in enumerate(chosen):
-        for line, names in enumerate(_LAYOUT):
+        for line, names in enumerate(SURROUND_LAYOUT):
             for column, name in enumerate(names):
                 axis = figure.add_subplot(grid[2 * row + line, column])
                 axis.set_axis_off()

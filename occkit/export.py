@@ -1,0 +1,410 @@
+"""ONNX export of a zoo model for one fixed rig, checked against PyTorch in onnxruntime.
+
+The exported graph is :mod:`occkit.models.deployment`'s fixed-rig network: camera images (and for DAOcc the voxel
+features and sparse-convolution rulebooks of the LiDAR sweep) in, ``occupancy_logits (B, K, X, Y, Z)`` out, every
+calibration-only index or sampling tensor a constant of the graph. It uses standard ONNX operators only (domain
+``""`` / ``ai.onnx``), which :func:`operator_counts` checks on the written file.
+
+Exporter: ``torch.onnx.export(..., dynamo=True)`` (``torch.export``), opset 18 by default. The TorchScript exporter
+(``dynamo=False``, opset 17) is not used: it writes ``index_add`` as a ScatterElements *without* reduction, which is
+silently wrong wherever two entries hit the same row (DAOcc's camera average over overlapping cameras); the
+``torch.export`` path writes ScatterND with ``reduction="add"``, takes the LiDAR inputs' variable lengths as named
+dynamic dimensions, and is the exporter PyTorch maintains.
+
+Parity (:func:`check_parity`): the graph runs in onnxruntime on a real sample and is compared with the model's own
+``forward`` in eval mode: the largest absolute logit difference must be at most 1e-3 and the arg-max class must agree
+on at least 99.9% of the voxels. Latencies (median over a few runs after a warm-up, same thread count) are measured
+for onnxruntime, the same network in PyTorch, and the model's full ``forward``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import statistics
+import tempfile
+import time
+from collections import Counter
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor, nn
+
+from occkit.models.deployment import OUTPUT_NAME, DeployedNetwork, deploy
+from occkit.types import Batch
+
+__all__ = [
+    "DEFAULT_OPSET",
+    "MAX_ABS_TOLERANCE",
+    "MIN_ARGMAX_AGREEMENT",
+    "STANDARD_DOMAINS",
+    "ExportError",
+    "load_model",
+    "load_sample",
+    "export_onnx",
+    "operator_counts",
+    "check_parity",
+    "measure_latency",
+    "export_model",
+]
+
+DEFAULT_OPSET = 18
+#: Largest absolute difference between onnxruntime and PyTorch logits that passes.
+MAX_ABS_TOLERANCE = 1e-3
+#: Smallest fraction of voxels whose arg-max class must agree.
+MIN_ARGMAX_AGREEMENT = 0.999
+#: ONNX operator domains of the standard operator set.
+STANDARD_DOMAINS = ("", "ai.onnx")
+
+
+class ExportError(RuntimeError):
+    """The exported graph is unusable: it needs operators outside the standard ONNX domains."""
+
+
+def _require(module: str):
+    """Import an optional dependency of the export, or say how to get it."""
+    import importlib
+
+    try:
+        return importlib.import_module(module)
+    except ImportError as error:
+        raise ImportError(f"ONNX export needs {module}: pip install onnx onnxruntime onnxscript "
+                          "(or the package's dev extra)") from error
+
+
+# ------------------------------------------------------------------------------------------------- what to export
+def load_model(name: str, checkpoint: str | Path | None = None,
+               seed: int = 0) -> tuple[nn.Module, Any, str | None]:
+    """A zoo model in eval mode without its detection head, its experiment (whose data settings load samples), and
+    how a checkpoint's config differs from the zoo entry's.
+
+    A checkpoint is exported as it was trained (its own saved config). It must hold the zoo entry's model: the same
+    architecture and the same parameters (names and shapes); other config differences (a loss weight, a grid
+    extent) are allowed and returned as a one-line note, None when there are none.
+
+    Args:
+        name: zoo entry.
+        checkpoint: occkit checkpoint of that entry; None: the entry's random initialisation under ``seed``.
+
+    Raises:
+        ValueError: unknown name, or a checkpoint holding another model.
+        FileNotFoundError: a missing checkpoint.
+    """
+    from occkit import zoo
+    from occkit.config import to_dict
+    from occkit.engine.checkpoint import check_compatible
+    from occkit.engine.evaluate import load_trained
+
+    if name not in zoo.names():
+        raise ValueError(f"unknown model {name!r}; the zoo has: {', '.join(zoo.names())}")
+    architecture, config = zoo.model_config(name)
+    difference = None
+    if checkpoint is None:
+        torch.manual_seed(seed)
+        model, experiment = zoo.build(name), zoo.experiment(name)
+    else:
+        model, experiment = load_trained(checkpoint, "cpu")
+        if experiment.architecture != architecture:
+            raise ValueError(f"{checkpoint} holds a {experiment.architecture} model, not {architecture}: it is not a "
+                             f"checkpoint of zoo model {name}")
+        _check_parameters(model, zoo.build(name), f"{checkpoint} is not a checkpoint of zoo model {name}")
+        try:
+            check_compatible({"architecture": architecture, "experiment": experiment.to_dict()}, architecture,
+                             to_dict(config), checkpoint)  # fmt: skip
+        except ValueError as error:
+            difference = f"{error} (exported with the checkpoint's own config)"
+    if hasattr(model, "remove_detection"):
+        model.remove_detection()  # the exported graph outputs occupancy only
+    return model.eval(), experiment, difference
+
+
+def _check_parameters(model: nn.Module, reference: nn.Module, message: str) -> None:
+    """Raise ``ValueError(message: first differing parameter)`` unless both have the same state-dict layout."""
+    shapes = {key: tuple(value.shape) for key, value in model.state_dict().items()}
+    expected = {key: tuple(value.shape) for key, value in reference.state_dict().items()}
+    for key in sorted(set(shapes) | set(expected)):
+        if shapes.get(key) != expected.get(key):
+            raise ValueError(f"{message}: parameter {key} is {shapes.get(key, 'missing')} in it but "
+                             f"{expected.get(key, 'missing')} in the zoo model")
+
+
+def load_sample(experiment: Any, data: str | Path | None = None, index: int = 1) -> tuple[Batch, dict[str, Any]]:
+    """One key frame with the experiment's data settings and the test transform, as a batch of one.
+
+    Args:
+        experiment: from :func:`load_model`.
+        data: a nuScenes-layout dataset root; None simulates a one-scene synthetic world (two key frames,
+            400 x 225 images) in a temporary folder.
+        index: key frame of the whole dataset (split ``all``), clamped to its length; the default, the second,
+            has a full set of earlier LiDAR sweeps when the first scene has two key frames or more.
+
+    Returns:
+        The batch and a description of where it came from.
+    """
+    from occkit.data.collate import collate
+    from occkit.data.dataset import OccupancyDataset
+
+    if index < 0:
+        raise ValueError(f"the sample index must be >= 0, got {index}")
+    settings = {"split": "all", "augment": False, "occupancy": False, "boxes": False, "depth_downsample": 0}
+
+    def key_frame(root: Path) -> tuple[Batch, dict[str, Any]]:
+        dataset = OccupancyDataset(dataclasses.replace(experiment.data, root=str(root), index=None, **settings))
+        frame = min(index, len(dataset) - 1)
+        return collate([dataset[frame]]), {"index": frame, "token": dataset.records[frame].token}
+
+    if data is not None:
+        if not Path(data).is_dir():
+            raise FileNotFoundError(f"dataset root {data} does not exist")
+        batch, source = key_frame(Path(data))
+        return batch, {"data": str(data), **source}
+    from occkit.sim.generate import SimConfig, simulate_dataset
+
+    with tempfile.TemporaryDirectory() as folder:
+        root = Path(folder) / "world"
+        simulate_dataset(SimConfig(scenes=1, frames=2, image_size=(400, 225), version=experiment.data.version), root)
+        batch, source = key_frame(root)
+    return batch, {"data": "synthetic world (1 scene, 400x225), generated", **source}
+
+
+# ----------------------------------------------------------------------------------------------------- export
+def _dynamic_shapes(net: DeployedNetwork) -> tuple | None:
+    """``torch.export`` dynamic shapes of ``forward(*inputs)`` from the network's named dynamic axes."""
+    if not net.dynamic_axes:
+        return None
+    specs = tuple(
+        {axis: torch.export.Dim(label, min=0) for axis, label in net.dynamic_axes[name].items()}
+        if name in net.dynamic_axes else None
+        for name in net.input_names
+    )  # fmt: skip
+    return (specs,)
+
+
+def _nodes(graph) -> list:
+    """Every node of an ONNX graph, those of its subgraphs (If, Loop, Scan bodies) included."""
+    found = []
+    for node in graph.node:
+        found.append(node)
+        for attribute in node.attribute:
+            subgraphs = ([attribute.g] if attribute.HasField("g") else []) + list(attribute.graphs)
+            for subgraph in subgraphs:
+                found += _nodes(subgraph)
+    return found
+
+
+def operator_counts(path: str | Path) -> dict[str, int]:
+    """ONNX operator types of a model file and how often each occurs, checked to be standard operators.
+
+    Raises:
+        ExportError: naming the operators outside :data:`STANDARD_DOMAINS` or the model's local functions.
+    """
+    onnx = _require("onnx")
+    model = onnx.load(str(path), load_external_data=False)
+    nodes = _nodes(model.graph) + [n for function in model.functions for n in function.node]
+    foreign = sorted({f"{n.domain}::{n.op_type}" for n in nodes if n.domain not in STANDARD_DOMAINS})
+    if foreign or model.functions:
+        functions = [f"{f.domain}::{f.name}" for f in model.functions]
+        raise ExportError(f"{path} uses operators outside the standard ONNX domains: {', '.join(foreign + functions)}")
+    return dict(sorted(Counter(node.op_type for node in nodes).items()))
+
+
+def _check_opset(opset: int) -> None:
+    if opset < 18:
+        raise ValueError(f"opset {opset} is not available: the torch.export-based exporter writes opset 18 or newer")
+
+
+def export_onnx(net: DeployedNetwork, inputs: dict[str, Tensor], path: str | Path,
+                opset: int = DEFAULT_OPSET) -> dict[str, Any]:
+    """Export a fixed-rig network to ``path`` and check its operators.
+
+    Args:
+        net: from :func:`occkit.models.deployment.deploy`.
+        inputs: example inputs (``net.inputs(batch)``); tensors on the network's device.
+        path: the ``.onnx`` file; weights go to ``<path>.data`` only past protobuf's 2 GB.
+        opset: ONNX opset, 18 or newer.
+
+    Returns:
+        ``opset``, ``inputs`` / ``outputs`` (name, shape with dynamic axes named, dtype, description),
+        ``op_types`` (operator -> count), ``files`` written.
+    """
+    _require("onnxscript")
+    _check_opset(opset)
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    args = tuple(inputs[name] for name in net.input_names)
+    with torch.no_grad():
+        output = net(*args)
+        program = torch.onnx.export(net, args, dynamo=True, opset_version=opset, input_names=net.input_names,
+                                    output_names=[OUTPUT_NAME], dynamic_shapes=_dynamic_shapes(net), verbose=False)
+    # The weights file of an earlier export to the same path would be left behind, unreferenced.
+    external = path.with_name(path.name + ".data")
+    external.unlink(missing_ok=True)
+    program.save(str(path))
+    files = [str(path)] + ([str(external)] if external.is_file() else [])
+
+    def spec(name: str, tensor: Tensor, doc: str) -> dict[str, Any]:
+        axes = net.dynamic_axes.get(name, {})
+        shape = [axes.get(axis, size) for axis, size in enumerate(tensor.shape)]
+        return {"name": name, "shape": shape, "dtype": str(tensor.dtype).removeprefix("torch."), "doc": doc}
+
+    return {
+        "opset": opset,
+        "inputs": [spec(name, inputs[name], net.input_docs[name]) for name in net.input_names],
+        "outputs": [spec(OUTPUT_NAME, output, "occupancy logits (B, K, X, Y, Z)")],
+        "op_types": operator_counts(path),
+        "files": files,
+    }
+
+
+# ----------------------------------------------------------------------------------------------------- parity
+def _median_seconds(run: Callable[[], Any], repeats: int, device: torch.device) -> float:
+    """Median wall time of ``run`` over ``repeats`` calls after one warm-up (CUDA work is waited for)."""
+    run()
+    times = []
+    for _ in range(repeats):
+        if device.type == "cuda":
+            torch.cuda.synchronize(device)
+        start = time.perf_counter()
+        run()
+        if device.type == "cuda":
+            torch.cuda.synchronize(device)
+        times.append(time.perf_counter() - start)
+    return statistics.median(times)
+
+
+def _compare(onnx_logits: Tensor, reference: Tensor) -> dict[str, Any]:
+    """Parity numbers of ``(B, K, X, Y, Z)`` logits against the reference."""
+    max_abs = float((onnx_logits - reference).abs().max())
+    onnx_class, reference_class = onnx_logits.argmax(dim=1), reference.argmax(dim=1)
+    disagree = onnx_class != reference_class
+    # How close the reference's two best classes are where the graphs disagree: a disagreement within the logit
+    # error is a numerical tie (random-init heads produce many), anything else is a real difference.
+    top2 = reference.topk(2, dim=1).values
+    margins = (top2[:, 0] - top2[:, 1])[disagree]
+    disagreements = int(disagree.sum())
+    agreement = 1 - disagreements / disagree.numel()
+    return {
+        "max_abs_diff": max_abs,
+        "argmax_agreement": agreement,
+        "voxels": int(disagree.numel()),
+        "argmax_disagreements": disagreements,
+        "disagreements_within_twice_max_abs_diff": int((margins <= 2 * max_abs).sum()),
+        "passed": max_abs <= MAX_ABS_TOLERANCE and agreement >= MIN_ARGMAX_AGREEMENT,
+        "tolerance": {"max_abs_diff": MAX_ABS_TOLERANCE, "argmax_agreement": MIN_ARGMAX_AGREEMENT},
+    }
+
+
+def _session(path: str | Path):
+    """An onnxruntime CPU session using as many threads as PyTorch, so that their timings compare."""
+    ort = _require("onnxruntime")
+    options = ort.SessionOptions()
+    options.intra_op_num_threads = torch.get_num_threads()
+    return ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
+
+
+def _feeds(inputs: dict[str, Tensor]) -> dict[str, np.ndarray]:
+    return {name: tensor.detach().cpu().numpy() for name, tensor in inputs.items()}
+
+
+def check_parity(path: str | Path, model: nn.Module, net: DeployedNetwork, batch: Batch) -> dict[str, Any]:
+    """Run the exported graph in onnxruntime (CPU) on ``batch`` and compare it with ``model(batch)``.
+
+    Args:
+        path: the exported ``.onnx``.
+        model: the model ``net`` was made from, in eval mode.
+        net: the fixed-rig network, which makes the graph's inputs from the batch.
+        batch: a sample of the rig ``net`` was made for.
+
+    Returns:
+        ``max_abs_diff`` and ``argmax_agreement`` (over ``voxels``), ``passed`` (both within ``tolerance``),
+        ``argmax_disagreements`` and how many of them are numerical ties
+        (``disagreements_within_twice_max_abs_diff``: the model's two best logits differ by at most twice
+        ``max_abs_diff``), and ``network_max_abs_diff``: the PyTorch network against the model.
+    """
+    with torch.no_grad():
+        inputs = net.inputs(batch)
+        reference = model(batch).occupancy.float().cpu()
+        network = net(*inputs.values()).float().cpu()
+        logits = torch.from_numpy(np.asarray(_session(path).run([OUTPUT_NAME], _feeds(inputs))[0])).float()
+    parity = _compare(logits, reference)
+    parity["network_max_abs_diff"] = float((network - reference).abs().max())
+    return parity
+
+
+def measure_latency(path: str | Path, model: nn.Module, net: DeployedNetwork, batch: Batch,
+                    repeats: int = 3) -> dict[str, Any]:
+    """Median latencies in milliseconds over ``repeats`` runs after a warm-up, on one batch.
+
+    Returns:
+        ``onnxruntime`` (the graph, CPU), ``torch_network`` (the same network in PyTorch, no grad),
+        ``torch_model`` (the model's ``forward``, plans and voxelization included), for LiDAR models
+        ``preprocess`` (voxelization and rulebooks, done outside the graph), and ``repeats``, ``threads``,
+        ``providers``, ``torch_device``.
+    """
+    device = next(model.parameters()).device
+    session = _session(path)
+    with torch.no_grad():
+        inputs = net.inputs(batch)
+        feeds, args = _feeds(inputs), tuple(inputs.values())
+        seconds = {
+            "onnxruntime": _median_seconds(lambda: session.run([OUTPUT_NAME], feeds), repeats, torch.device("cpu")),
+            "torch_network": _median_seconds(lambda: net(*args), repeats, device),
+            "torch_model": _median_seconds(lambda: model(batch), repeats, device),
+        }
+        if "voxel_features" in inputs:
+            seconds["preprocess"] = _median_seconds(lambda: net.inputs(batch), repeats, device)
+    latency: dict[str, Any] = {key: round(1000 * value, 2) for key, value in seconds.items()}
+    latency.update(repeats=repeats, threads=torch.get_num_threads(), providers=session.get_providers(),
+                   torch_device=str(device))  # fmt: skip
+    return latency
+
+
+# ------------------------------------------------------------------------------------------------- end to end
+def export_model(
+    name: str,
+    out: str | Path,
+    checkpoint: str | Path | None = None,
+    data: str | Path | None = None,
+    opset: int = DEFAULT_OPSET,
+    check: bool = True,
+    repeats: int = 3,
+    sample: int = 1,
+) -> dict[str, Any]:
+    """``occkit export``: load, export, check parity and write ``<out>.json`` beside ``out``.
+
+    Args:
+        name: zoo entry; checkpoint: its trained weights (None: seeded random initialisation).
+        data: dataset root for the reference sample (None: a synthetic world generated on the fly).
+        opset: ONNX opset (18 or newer); check: run the parity check and timings; repeats: timed runs.
+        sample: key frame of ``data`` (split ``all``) whose rig the graph is made for.
+
+    Returns:
+        The report written to the JSON file; ``report["parity"]["passed"]`` tells whether parity holds.
+    """
+    out = Path(out)
+    if repeats < 1:
+        raise ValueError(f"repeats must be >= 1, got {repeats}")
+    _check_opset(opset)
+    model, experiment, difference = load_model(name, checkpoint)
+    batch, source = load_sample(experiment, data, sample)
+    net = deploy(model, batch)
+    with torch.no_grad():
+        inputs = net.inputs(batch)
+    start = time.perf_counter()
+    report: dict[str, Any] = {"model": name, "checkpoint": None if checkpoint is None else str(checkpoint),
+                              "config_difference": difference, "sample": source}  # fmt: skip
+    report.update(export_onnx(net, inputs, out, opset))
+    report.update(exporter=f"torch.onnx.export(dynamo=True), torch {torch.__version__}",
+                  export_seconds=round(time.perf_counter() - start, 1),
+                  precomputed={n: list(b.shape) for n, b in net.named_buffers(recurse=False)})
+    if check:
+        report["parity"] = check_parity(out, model, net, batch)
+        report["latency_ms"] = measure_latency(out, model, net, batch, repeats)
+        report["onnxruntime"] = _require("onnxruntime").__version__
+    json_path = out.with_suffix(".json")
+    json_path.write_text(json.dumps(report, indent=2) + "\n")
+    report["json"] = str(json_path)
+    return report
