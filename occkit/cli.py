@@ -441,7 +441,7 @@ def _add_demo(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--data", type=Path, default=Path("data/demo"),
                         help="synthetic dataset, written first if absent (default data/demo)")
     parser.add_argument("--steps", type=int, default=None,
-                        help="optimizer steps per model (default: the demo's, 700 and 400)")
+                        help="optimizer steps per model (default: the demo's, 700 and 250)")
 
 
 def _run_demo(args: argparse.Namespace) -> int:

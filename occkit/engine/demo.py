@@ -18,8 +18,8 @@ import numpy as np
 
 __all__ = ["run_demo", "DEMO_MODELS", "DEMO_WORLD"]
 
-#: Zoo entries the demo trains, with their optimizer steps (about 12 and 2 minutes on 2 CPU cores).
-DEMO_MODELS: dict[str, int] = {"daocc_tiny": 700, "flashocc_tiny": 400}
+#: Zoo entries the demo trains, with their optimizer steps (about 14 and 2 minutes on 2 CPU cores).
+DEMO_MODELS: dict[str, int] = {"daocc_tiny": 700, "flashocc_tiny": 250}
 #: The synthetic world of the demo: 10 scenes of 24 key frames at 400 x 225 (the last 2-3 scenes held out).
 DEMO_WORLD = {"scenes": 10, "frames": 24, "image_size": (400, 225), "seed": 1}
 
