@@ -160,6 +160,8 @@ class BenchConfig:
             raise ValueError(f"warmup must be >= 0 and threads >= 1, got {self.warmup} and {self.threads}")
         if self.gemm_size is not None and self.gemm_size < 16:
             raise ValueError(f"gemm_size must be >= 16, got {self.gemm_size}")
+        if self.miou is not None and not 0 <= self.miou <= 100:
+            raise ValueError(f"miou is a percentage between 0 and 100, got {self.miou:g}")
         if isinstance(self.optimizations, str) and self.optimizations != "auto":
             raise ValueError(f"optimizations must be 'auto' or a sequence of names, got {self.optimizations!r}")
         if not isinstance(self.optimizations, str):

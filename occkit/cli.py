@@ -15,6 +15,17 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from occkit import __version__
+from occkit.arguments import (
+    check_device,
+    check_disk,
+    check_memory,
+    input_file,
+    input_folder,
+    integer,
+    number,
+    output_file,
+    output_folder,
+)
 
 
 # ----------------------------------------------------------------------------------------------------- info
@@ -25,6 +36,8 @@ def _add_info(parser: argparse.ArgumentParser) -> None:
 def _run_info(args: argparse.Namespace) -> int:
     from occkit.environment import environment_report, format_environment_report
 
+    if args.json is not None:
+        output_file(args.json, "--json")
     report = environment_report()
     print(format_environment_report(report))
     if args.json is not None:
@@ -43,17 +56,18 @@ def _image_size(text: str) -> tuple[int, int]:
 
 def _add_sim(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=Path, required=True, help="dataset root to create (nuScenes + Occ3D layout)")
-    parser.add_argument("--scenes", type=int, default=2, help="number of scenes (default 2)")
-    parser.add_argument("--frames", type=int, default=40, help="key frames per scene at 2 Hz (default 40)")
-    parser.add_argument("--seed", type=int, default=0, help="dataset seed (default 0)")
+    parser.add_argument("--scenes", type=integer(1), default=2, help="number of scenes (default 2)")
+    parser.add_argument("--frames", type=integer(1), default=40, help="key frames per scene at 2 Hz (default 40)")
+    parser.add_argument("--seed", type=integer(0), default=0, help="dataset seed (default 0)")
     parser.add_argument(
         "--image-size", type=_image_size, default=(800, 450), help="camera images WxH (default 800x450)"
     )
     parser.add_argument("--version", default="v1.0-synth", help="table folder name, as nuScenes names it")
     parser.add_argument("--cameras", nargs="+", metavar="CAM", help="camera channels to render (default: all six)")
     parser.add_argument("--surroundocc", action="store_true", help="also write SurroundOcc ground truth")
-    parser.add_argument("--workers", type=int, default=1, help="scenes simulated in parallel processes")
-    parser.add_argument("--overwrite", action="store_true", help="replace an existing non-empty --out")
+    parser.add_argument("--workers", type=integer(1), default=1, help="scenes simulated in parallel processes")
+    parser.add_argument("--overwrite", action="store_true",
+                        help="replace an existing dataset that occkit sim wrote (anything else is refused)")
     parser.add_argument(
         "--set",
         dest="overrides",
@@ -70,7 +84,13 @@ def _run_sim(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from occkit.config import apply_overrides
-    from occkit.sim.generate import SimConfig, simulate_dataset
+    from occkit.sim.generate import SimConfig, check_output, estimate_resources, simulate_dataset
+
+    output_folder(args.out, "--out")
+    check_output(args.out, args.overwrite)
+    for option, path in (("--preview", args.preview), ("--json", args.json)):
+        if path is not None:
+            output_file(path, option)
 
     options = {
         "scenes": args.scenes,
@@ -83,6 +103,11 @@ def _run_sim(args: argparse.Namespace) -> int:
     if args.cameras:
         options["cameras"] = tuple(args.cameras)
     config = apply_overrides(SimConfig(**options), args.overrides)
+    needs = estimate_resources(config)
+    workers = min(args.workers, config.scenes)
+    check_memory(workers * needs["memory_per_worker"], f"simulating {workers} scene(s) at once at "
+                 f"{config.image_size[0]}x{config.image_size[1]}", "--image-size/--workers")
+    check_disk(args.out, needs["disk"], f"{config.scenes} scene(s) of {config.frames} key frames", "--out")
     with tqdm(total=config.scenes * config.frames, unit="frame", desc="sim") as bar:
         summary = simulate_dataset(
             config, args.out, workers=args.workers, overwrite=args.overwrite, progress=bar.update
@@ -106,7 +131,8 @@ def _add_index(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--root", type=Path, required=True, help="dataset root (holds <version>/, samples/, gts/)")
     parser.add_argument("--version", required=True, help="table folder, e.g. v1.0-trainval, v1.0-mini, v1.0-synth")
     parser.add_argument("--out", type=Path, required=True, help="index JSON file to write")
-    parser.add_argument("--max-sweeps", type=int, default=10, help="earlier LiDAR sweeps per key frame (default 10)")
+    parser.add_argument("--max-sweeps", type=integer(0), default=10,
+                        help="earlier LiDAR sweeps per key frame (default 10)")
     parser.add_argument(
         "--split",
         default="all",
@@ -132,6 +158,8 @@ def _add_index(parser: argparse.ArgumentParser) -> None:
 
 
 def _run_index(args: argparse.Namespace) -> int:
+    input_folder(args.root, "--root")
+    output_file(args.out, "--out")
     if args.from_info is not None:
         return _index_from_info(args)
     from tqdm import tqdm
@@ -223,7 +251,7 @@ def _add_eval_preds(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--allow-missing", action="store_true", help="score frames without a prediction as all free (counted)"
     )
-    parser.add_argument("--workers", type=int, default=4, help="threads reading and scoring frames (default 4)")
+    parser.add_argument("--workers", type=integer(1), default=4, help="threads reading and scoring frames (default 4)")
 
 
 def _run_eval_preds(args: argparse.Namespace) -> int:
@@ -231,6 +259,9 @@ def _run_eval_preds(args: argparse.Namespace) -> int:
 
     from occkit.metrics.evaluate import evaluate_predictions, find_gt_labels, markdown_table, write_report
 
+    input_folder(args.gt, "--gt")
+    input_folder(args.preds, "--preds")
+    output_folder(args.out, "--out")
     origins = args.ray_origins
     if args.rayiou and origins is None:
         if args.nuscenes is None:
@@ -278,6 +309,9 @@ def _add_train(parser: argparse.ArgumentParser) -> None:
                         help="override a config value, e.g. --set train.lr=2e-4 (repeatable)")
     parser.add_argument("--resume", default=None, metavar="auto|CKPT",
                         help="auto: continue from the newest checkpoint in --out; or a checkpoint file")
+    parser.add_argument("--allow-change", action="append", default=[], metavar="KEY",
+                        help="with --resume: let this experiment key (train.max_steps) or section (train) differ "
+                             "from the checkpoint's; other differences are refused (repeatable)")
     parser.add_argument("--device", default=None, help="cpu, cuda, cuda:1 (default: CUDA when available)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar (logs still written)")
 
@@ -321,12 +355,15 @@ def _load_trained(args: argparse.Namespace, device):
 def _run_train(args: argparse.Namespace) -> int:
     from occkit.engine.train import train
 
+    output_folder(args.out, "--out")
+    check_device(args.device)
     experiment = _experiment(args.config, args.set)
     data_root = Path(experiment.data.root)
     if not data_root.is_dir():
         raise FileNotFoundError(f"data root {data_root} does not exist (set data.root, or write a synthetic dataset "
                                 f"with `occkit sim --out {data_root}`)")
-    result = train(experiment, args.out, resume=args.resume, progress=not args.no_progress, device=args.device)
+    result = train(experiment, args.out, resume=args.resume, progress=not args.no_progress, device=args.device,
+                   allow_changes=args.allow_change)
     if not _is_main_process():  # under torchrun, rank 0 alone writes and reports
         return 0
     summary = {"out": str(result.out), "steps": result.steps, "seconds": round(result.seconds, 1),
@@ -347,8 +384,8 @@ def _add_eval(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=Path, required=True, help="folder for metrics.json, metrics.md and plots")
     parser.add_argument("--no-rayiou", action="store_true", help="skip RayIoU (mIoU and IoU only)")
     parser.add_argument("--save-predictions", action="store_true", help="also write <token>.npz predictions")
-    parser.add_argument("--batch-size", type=int, default=1)
-    parser.add_argument("--workers", type=int, default=2, help="data loading processes")
+    parser.add_argument("--batch-size", type=integer(1), default=1)
+    parser.add_argument("--workers", type=integer(0), default=2, help="data loading processes")
     parser.add_argument("--device", default=None, help="cpu, cuda (default: CUDA when available)")
 
 
@@ -359,6 +396,7 @@ def _run_eval(args: argparse.Namespace) -> int:
     from occkit.engine.evaluate import dataset_ray_origins, evaluate_model, evaluation_dataset
     from occkit.metrics.evaluate import markdown_table, write_report
 
+    _check_trained_run_args(args)
     # Under torchrun every rank scores its share of the frames; the counts are summed, rank 0 writes the report.
     context = distributed.setup(args.device)
     try:
@@ -388,6 +426,15 @@ def _run_eval(args: argparse.Namespace) -> int:
     return 0
 
 
+def _check_trained_run_args(args: argparse.Namespace) -> None:
+    """The options ``eval`` and ``predict`` share, checked before the model is loaded."""
+    input_file(args.ckpt, "--ckpt")
+    if args.data is not None:
+        input_folder(args.data, "--data")
+    output_folder(args.out, "--out")
+    check_device(args.device)
+
+
 def _prepare_out(out: Path) -> None:
     from occkit.engine.checkpoint import ensure_writable
 
@@ -401,8 +448,8 @@ def _add_predict(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--data", type=Path, required=True, help="dataset root (nuScenes layout)")
     parser.add_argument("--split", default="val", help="split to predict: train, val, test, all, ... (default val)")
     parser.add_argument("--out", type=Path, required=True, help="folder for <token>.npz files (Occ3D format)")
-    parser.add_argument("--batch-size", type=int, default=1)
-    parser.add_argument("--workers", type=int, default=2, help="data loading processes")
+    parser.add_argument("--batch-size", type=integer(1), default=1)
+    parser.add_argument("--workers", type=integer(0), default=2, help="data loading processes")
     parser.add_argument("--device", default=None, help="cpu, cuda (default: CUDA when available)")
 
 
@@ -413,6 +460,7 @@ def _run_predict(args: argparse.Namespace) -> int:
     from occkit.engine import distributed
     from occkit.engine.evaluate import evaluation_dataset, split_loader, write_prediction
 
+    _check_trained_run_args(args)
     context = distributed.setup(args.device)  # under torchrun each rank writes the files of its share
     try:
         model, experiment = _load_trained(args, context.device)
@@ -440,13 +488,15 @@ def _add_demo(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=Path, default=Path("runs/demo"), help="demo folder (default runs/demo)")
     parser.add_argument("--data", type=Path, default=Path("data/demo"),
                         help="synthetic dataset, written first if absent (default data/demo)")
-    parser.add_argument("--steps", type=int, default=None,
+    parser.add_argument("--steps", type=integer(1), default=None,
                         help="optimizer steps per model (default: the demo's, 700 and 250)")
 
 
 def _run_demo(args: argparse.Namespace) -> int:
     from occkit.engine.demo import DEMO_MODELS, run_demo
 
+    output_folder(args.out, "--out")
+    output_folder(args.data, "--data")
     models = None if args.steps is None else {name: args.steps for name in DEMO_MODELS}
     report = run_demo(args.out, args.data, models)
     print(f"report: {report}")
@@ -461,16 +511,23 @@ def _add_export(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--data", type=Path, default=None,
                         help="nuScenes-layout dataset whose rig the graph is made for (default: a one-scene "
                              "synthetic world generated in a temporary folder)")
-    parser.add_argument("--sample", type=int, default=1, help="key frame of --data used as the reference (default 1)")
-    parser.add_argument("--opset", type=int, default=18, help="ONNX opset, 18 or newer (default 18)")
+    parser.add_argument("--sample", type=integer(0), default=None,
+                        help="key frame of --data (split all) used as the reference (default: the second)")
+    parser.add_argument("--opset", type=integer(18), default=18, help="ONNX opset, 18 or newer (default 18)")
     parser.add_argument("--out", type=Path, required=True, help="the .onnx file; the report goes to FILE.json")
     parser.add_argument("--no-check", action="store_true", help="skip the onnxruntime parity check and timings")
-    parser.add_argument("--repeats", type=int, default=3, help="timed runs for the latencies (default 3)")
+    parser.add_argument("--repeats", type=integer(1), default=3, help="timed runs for the latencies (default 3)")
 
 
 def _run_export(args: argparse.Namespace) -> int:
-    from occkit.export import ExportError, export_model
+    from occkit.export import ExportError, check_opset, export_model
 
+    output_file(args.out, "--out")
+    if args.ckpt is not None:
+        input_file(args.ckpt, "--ckpt")
+    if args.data is not None:
+        input_folder(args.data, "--data")
+    check_opset(args.opset)
     print(f"exporting {args.model} to {args.out} ...")
     try:
         report = export_model(args.model, args.out, checkpoint=args.ckpt, data=args.data, opset=args.opset,
@@ -513,25 +570,33 @@ def _add_bench(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--device", default="cpu", help="cpu, cuda or cuda:N (default cpu)")
     parser.add_argument("--precision", choices=("fp32", "bf16", "fp16"), default="fp32",
                         help="fp32, or bf16 / fp16 autocast (fp16 on CUDA only); the GEMM yardstick uses the same")
-    parser.add_argument("--batch", type=int, default=1, help="copies of the key frame per pass (default 1)")
-    parser.add_argument("--iters", type=int, default=10, help="timed passes (default 10)")
-    parser.add_argument("--warmup", type=int, default=2, help="untimed passes first (default 2)")
-    parser.add_argument("--threads", type=int, default=None, help="CPU threads (default: PyTorch's)")
+    parser.add_argument("--batch", type=integer(1, 256), default=1, help="copies of the key frame per pass (default 1)")
+    parser.add_argument("--iters", type=integer(1), default=10, help="timed passes (default 10)")
+    parser.add_argument("--warmup", type=integer(0), default=2, help="untimed passes first (default 2)")
+    parser.add_argument("--threads", type=integer(1), default=None, help="CPU threads (default: PyTorch's)")
     parser.add_argument("--data", type=Path, default=None,
                         help="dataset root to take the last key frame from (default: a one-scene 1600x900 "
                              "synthetic world, simulated once into data/bench-1600x900)")  # fmt: skip
     parser.add_argument("--optimizations", type=_optimizations, default="auto", metavar="auto|none|LIST",
                         help="fast path: auto (default) measures fixed_calibration, fold_bn, channels_last and "
                              "compile one by one and keeps those that speed up; none; or a comma list to apply")
-    parser.add_argument("--gemm-size", type=int, default=None,
+    parser.add_argument("--gemm-size", type=integer(16, 65536), default=None,
                         help="n of the n x n GEMM yardstick (default 4096 on CPU, 8192 on CUDA)")
-    parser.add_argument("--miou", type=float, default=None, help="the model's mIoU, for RT-mIoU@10/15/20")
+    parser.add_argument("--miou", type=number(0, 100), default=None,
+                        help="the model's mIoU in percent (0 to 100), for RT-mIoU@10/15/20")
     parser.add_argument("--out", type=Path, required=True, help="JSON file for the results")
 
 
 def _run_bench(args: argparse.Namespace) -> int:
     from occkit.bench import BenchConfig, format_report, run_bench
 
+    output_file(args.out, "--out")
+    check_device(args.device)
+    if args.data is not None:
+        input_folder(args.data, "--data")
+    if not args.device.startswith("cuda"):
+        size = args.gemm_size or 4096
+        check_memory(3 * 4 * size**2, f"the {size} x {size} GEMM yardstick (three fp32 matrices)", "--gemm-size")
     config = BenchConfig(model=args.model, device=args.device, precision=args.precision, batch_size=args.batch,
                          iters=args.iters, warmup=args.warmup, threads=args.threads, optimizations=args.optimizations,
                          gemm_size=args.gemm_size, data=None if args.data is None else str(args.data),
@@ -548,26 +613,37 @@ def _add_viz(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--split", default="val", help="split to take frames from (default val)")
     parser.add_argument("--version", default="v1.0-synth", help="table folder under --data (default v1.0-synth)")
     frames = parser.add_mutually_exclusive_group()
-    frames.add_argument("--frames", type=int, default=3, help="frames spread evenly over the split (default 3)")
+    frames.add_argument("--frames", type=integer(1), default=3, help="frames spread evenly over the split (default 3)")
     frames.add_argument("--token", nargs="+", default=(), metavar="TOKEN", help="sample tokens to render instead")
     predictions = parser.add_mutually_exclusive_group()
     predictions.add_argument("--pred", type=Path, metavar="DIR",
                              help="folder of Occ3D <token>.npz predictions (as occkit predict writes them)")
     predictions.add_argument("--ckpt", type=Path, metavar="FILE", help="predict on the fly with this checkpoint")
     parser.add_argument("--device", default="cpu", help="where --ckpt's model runs (default cpu)")
-    parser.add_argument("--sweeps", type=int, default=0,
+    parser.add_argument("--sweeps", type=integer(0), default=0,
                         help="earlier LiDAR sweeps added to the key frame in the LiDAR overlay (default 0)")
-    parser.add_argument("--display-width", type=int, default=800,
+    parser.add_argument("--display-width", type=integer(16, 8192), default=800,
                         help="camera images wider than this are shown resized to it (default 800 px)")
-    parser.add_argument("--dpi", type=int, default=100, help="PNG resolution (default 100)")
-    parser.add_argument("--colors", type=int, default=None, metavar="N",
+    parser.add_argument("--dpi", type=integer(20, 1000), default=100, help="PNG resolution, 20 to 1000 (default 100)")
+    parser.add_argument("--colors", type=integer(2, 256), default=None, metavar="N",
                         help="store PNGs with a palette of N colours (<= 256): files several times smaller")
     parser.add_argument("--out", type=Path, required=True, help="folder for the PNGs, index.md/html and index.json")
 
 
 def _run_viz(args: argparse.Namespace) -> int:
-    from occkit.viz.run import VizConfig, render_frames
+    from occkit.viz.run import LARGEST_FIGURE_INCHES, VizConfig, render_frames
 
+    input_folder(args.data, "--data")
+    output_folder(args.out, "--out")
+    if args.pred is not None:
+        input_folder(args.pred, "--pred")
+    if args.ckpt is not None:
+        input_file(args.ckpt, "--ckpt")
+    check_device(args.device)
+    width, height = LARGEST_FIGURE_INCHES
+    # An RGBA canvas, its PNG encoding and (with --colors) a palette conversion are alive at once.
+    check_memory(3 * 4 * width * height * args.dpi**2, f"a {width:g} x {height:g} inch figure at {args.dpi} dpi",
+                 "--dpi")
     config = VizConfig(data=str(args.data), out=str(args.out), split=args.split, version=args.version,
                        frames=args.frames, tokens=tuple(args.token),
                        pred=None if args.pred is None else str(args.pred),
@@ -608,19 +684,39 @@ COMMANDS: dict[str, Command] = {
 }
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse with usage errors on one line: the option, what is wrong, where help is; exit code 2."""
+
+    def error(self, message: str):
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
+def _add_debug(parser: argparse.ArgumentParser, default) -> None:
+    parser.add_argument("--debug", action="store_true", default=default,
+                        help="show the full traceback of an error instead of its one-line message")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="occkit",
         description="3D semantic occupancy prediction in pure PyTorch: models, data, metrics and tools.",
     )
     parser.add_argument("--version", action="version", version=f"occkit {__version__}")
+    _add_debug(parser, False)
     commands = parser.add_subparsers(dest="command", metavar="<command>")
     for name, (summary, add_arguments, _) in COMMANDS.items():
-        add_arguments(commands.add_parser(name, help=summary, description=summary))
+        command = commands.add_parser(name, help=summary, description=summary)
+        add_arguments(command)
+        _add_debug(command, argparse.SUPPRESS)  # `occkit --debug X` and `occkit X --debug` both work
     return parser
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    """Run one command. Errors a user can cause (bad options, files, records, sizes) end in one line naming the
+    option, file or record, with exit code 2; anything else is occkit's bug: one line asking for a report, exit
+    code 1. ``--debug`` shows the traceback of either."""
+    from occkit.errors import is_input_error, one_line
+
     parser = build_parser()
     args = parser.parse_args(argv)
     if args.command is None:
@@ -632,10 +728,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130
-    except (ValueError, FileExistsError, FileNotFoundError, PermissionError) as error:
-        # Bad input: a one-line message naming the offending value or file, not a traceback.
-        print(f"occkit {args.command}: error: {error}", file=sys.stderr)
-        return 2
+    except Exception as error:
+        if args.debug:
+            raise
+        if is_input_error(error):
+            print(f"occkit {args.command}: error: {one_line(error)}", file=sys.stderr)
+            return 2
+        print(f"occkit {args.command}: internal error: {type(error).__name__}: {one_line(error)} (run again with "
+              "--debug for the traceback, and please report it)", file=sys.stderr)
+        return 1
 
 
 if __name__ == "__main__":

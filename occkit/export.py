@@ -42,6 +42,7 @@ __all__ = [
     "MIN_ARGMAX_AGREEMENT",
     "STANDARD_DOMAINS",
     "ExportError",
+    "check_opset",
     "load_model",
     "load_sample",
     "export_onnx",
@@ -131,15 +132,16 @@ def _check_parameters(model: nn.Module, reference: nn.Module, message: str) -> N
                              f"{expected.get(key, 'missing')} in the zoo model")
 
 
-def load_sample(experiment: Any, data: str | Path | None = None, index: int = 1) -> tuple[Batch, dict[str, Any]]:
+def load_sample(experiment: Any, data: str | Path | None = None,
+                index: int | None = None) -> tuple[Batch, dict[str, Any]]:
     """One key frame with the experiment's data settings and the test transform, as a batch of one.
 
     Args:
         experiment: from :func:`load_model`.
         data: a nuScenes-layout dataset root; None simulates a one-scene synthetic world (two key frames,
             400 x 225 images) in a temporary folder.
-        index: key frame of the whole dataset (split ``all``), clamped to its length; the default, the second,
-            has a full set of earlier LiDAR sweeps when the first scene has two key frames or more.
+        index: key frame of the whole dataset (split ``all``); None takes the second (the first of a one-frame
+            dataset), which has a full set of earlier LiDAR sweeps when the first scene has two key frames or more.
 
     Returns:
         The batch and a description of where it came from.
@@ -147,13 +149,15 @@ def load_sample(experiment: Any, data: str | Path | None = None, index: int = 1)
     from occkit.data.collate import collate
     from occkit.data.dataset import OccupancyDataset
 
-    if index < 0:
+    if index is not None and index < 0:
         raise ValueError(f"the sample index must be >= 0, got {index}")
     settings = {"split": "all", "augment": False, "occupancy": False, "boxes": False, "depth_downsample": 0}
 
     def key_frame(root: Path) -> tuple[Batch, dict[str, Any]]:
         dataset = OccupancyDataset(dataclasses.replace(experiment.data, root=str(root), index=None, **settings))
-        frame = min(index, len(dataset) - 1)
+        if index is not None and index >= len(dataset):
+            raise ValueError(f"--sample {index}: {root} has {len(dataset)} key frames, 0 to {len(dataset) - 1}")
+        frame = min(1, len(dataset) - 1) if index is None else index
         return collate([dataset[frame]]), {"index": frame, "token": dataset.records[frame].token}
 
     if data is not None:
@@ -211,9 +215,19 @@ def operator_counts(path: str | Path) -> dict[str, int]:
     return dict(sorted(Counter(node.op_type for node in nodes).items()))
 
 
-def _check_opset(opset: int) -> None:
+def check_opset(opset: int) -> None:
+    """Refuse an opset the exporter cannot write: below 18 (the torch.export-based exporter's first) or above the
+    newest the installed ``onnx`` package defines."""
     if opset < 18:
         raise ValueError(f"opset {opset} is not available: the torch.export-based exporter writes opset 18 or newer")
+    newest = _require("onnx").defs.onnx_opset_version()
+    if opset > newest:
+        raise ValueError(f"opset {opset} is not available: the installed onnx package knows opsets up to {newest}")
+
+
+def _file_opset(model) -> int:
+    """The default-domain opset a model file declares."""
+    return next(entry.version for entry in model.opset_import if entry.domain in STANDARD_DOMAINS)
 
 
 def export_onnx(net: DeployedNetwork, inputs: dict[str, Tensor], path: str | Path,
@@ -231,7 +245,7 @@ def export_onnx(net: DeployedNetwork, inputs: dict[str, Tensor], path: str | Pat
         ``op_types`` (operator -> count), ``files`` written.
     """
     _require("onnxscript")
-    _check_opset(opset)
+    check_opset(opset)
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     args = tuple(inputs[name] for name in net.input_names)
@@ -244,6 +258,12 @@ def export_onnx(net: DeployedNetwork, inputs: dict[str, Tensor], path: str | Pat
     external.unlink(missing_ok=True)
     program.save(str(path))
     files = [str(path)] + ([str(external)] if external.is_file() else [])
+    # The exporter falls back to the opset it built the graph in when its version converter fails (it logs the
+    # converter's traceback and goes on): a file of another opset than asked for is an error, not a report.
+    written = _file_opset(_require("onnx").load(str(path), load_external_data=False))
+    if written != opset:
+        raise ExportError(f"{path}: the exporter could not convert the graph to opset {opset} and wrote opset "
+                          f"{written}; export with --opset {written}")
 
     def spec(name: str, tensor: Tensor, doc: str) -> dict[str, Any]:
         axes = net.dynamic_axes.get(name, {})
@@ -371,7 +391,7 @@ def export_model(
     opset: int = DEFAULT_OPSET,
     check: bool = True,
     repeats: int = 3,
-    sample: int = 1,
+    sample: int | None = None,
 ) -> dict[str, Any]:
     """``occkit export``: load, export, check parity and write ``<out>.json`` beside ``out``.
 
@@ -387,7 +407,7 @@ def export_model(
     out = Path(out)
     if repeats < 1:
         raise ValueError(f"repeats must be >= 1, got {repeats}")
-    _check_opset(opset)
+    check_opset(opset)
     model, experiment, difference = load_model(name, checkpoint)
     batch, source = load_sample(experiment, data, sample)
     net = deploy(model, batch)

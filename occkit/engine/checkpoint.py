@@ -13,6 +13,7 @@ from __future__ import annotations
 import json
 import os
 import random
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -28,6 +29,8 @@ __all__ = [
     "rng_state",
     "set_rng_state",
     "check_compatible",
+    "check_resumable",
+    "BOOKKEEPING_KEYS",
     "ensure_writable",
 ]
 
@@ -148,27 +151,65 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
     return payload
 
 
+#: Experiment keys that change no weight, so a resumed run may change them without ``allow``.
+BOOKKEEPING_KEYS = ("train.workers", "train.log_every", "train.keep_last", "train.checkpoint_every")
+
+
 def check_compatible(payload: dict[str, Any], architecture: str, model_config: dict, path: str | Path) -> None:
     """Raise ``ValueError`` naming the first difference when a checkpoint holds another model or config."""
     if payload["architecture"] != architecture:
         raise ValueError(f"{path} holds a {payload['architecture']} model, not {architecture}")
-    saved = _with_defaults(architecture, payload["experiment"]["model"])
+    saved = _fill(payload["experiment"]["model"], _defaults(architecture)["model"])
     differences = _differences(saved, model_config, "model")
     if differences:
-        raise ValueError(f"{path} was trained with another model config: {differences[0]}"
+        raise ValueError(f"{path} was trained with another model config: {_describe(differences[0])}"
                          + (f" (and {len(differences) - 1} more differences)" if len(differences) > 1 else ""))
 
 
-def _with_defaults(architecture: str, saved: dict) -> dict:
-    """The saved model config with the options added since it was written filled in at the architecture's
-    defaults, so that a new option left at its default is no difference (a removed option stays, and is named)."""
-    from occkit.config import to_dict
-    from occkit.engine.experiment import model_config_class
+def check_resumable(payload: dict[str, Any], experiment: dict, path: str | Path,
+                    allow: Sequence[str] = ()) -> list[str]:  # fmt: skip
+    """Refuse to resume a checkpoint under another experiment than the one it was trained with.
 
-    return _fill(saved, to_dict(model_config_class(architecture, "checkpoint")()))
+    Args:
+        payload: the checkpoint.
+        experiment: the requested experiment, as ``Experiment.to_dict()``.
+        path: the checkpoint's file, for the messages.
+        allow: keys (``train.lr``) or sections (``train``) that may differ; :data:`BOOKKEEPING_KEYS` always may.
+
+    Returns:
+        The allowed differences, described (``train.lr: 0.001 -> 0.0005``), for the run to report.
+
+    Raises:
+        ValueError: another architecture, or differences outside ``allow``, every key named.
+    """
+    architecture = experiment["architecture"]
+    if payload["architecture"] != architecture:
+        raise ValueError(f"{path} holds a {payload['architecture']} model, not {architecture}")
+    saved = _fill(payload["experiment"], _defaults(architecture))
+    differences = _differences(saved, experiment, "")
+    allowed = [*BOOKKEEPING_KEYS, *allow]
+    refused = [d for d in differences if not any(d[0] == key or d[0].startswith(key + ".") for key in allowed)]
+    if refused:
+        keys = " ".join(f"--allow-change {key}" for key, _, _ in refused)
+        raise ValueError(f"{path} was trained with another experiment: "
+                         + "; ".join(_describe(d) for d in refused)
+                         + f". Resume with the saved settings, or pass {keys} to change them (nothing was written)")
+    return [f"{key}: {saved_value!r} -> {value!r}" for key, saved_value, value in differences]
+
+
+def _defaults(architecture: str) -> dict:
+    """The experiment of ``architecture`` with every option at its default (sections model, data, train)."""
+    from occkit.config import to_dict
+    from occkit.data.dataset import DatasetConfig
+    from occkit.engine.experiment import TrainConfig, model_config_class
+
+    return {"architecture": architecture, "model": to_dict(model_config_class(architecture, "checkpoint")()),
+            "data": to_dict(DatasetConfig()), "train": to_dict(TrainConfig())}  # fmt: skip
 
 
 def _fill(saved: Any, defaults: Any) -> Any:
+    """``saved`` with the options added since it was written filled in at their defaults, so that a new option left
+    at its default is no difference (a removed option stays, and is named)."""
     if not (isinstance(saved, dict) and isinstance(defaults, dict)):
         return saved
     filled = {name: value for name, value in defaults.items() if name not in saved}
@@ -176,10 +217,21 @@ def _fill(saved: Any, defaults: Any) -> Any:
     return filled
 
 
-def _differences(saved: Any, current: Any, key: str) -> list[str]:
+_MISSING = object()
+
+
+def _differences(saved: Any, current: Any, key: str) -> list[tuple[str, Any, Any]]:
+    """``(key, saved value, current value)`` of every leaf that differs (a missing side is :data:`_MISSING`)."""
     if isinstance(saved, dict) and isinstance(current, dict):
         found = []
         for name in sorted(set(saved) | set(current)):
-            found += _differences(saved.get(name), current.get(name), f"{key}.{name}")
+            found += _differences(saved.get(name, _MISSING), current.get(name, _MISSING),
+                                  f"{key}.{name}" if key else name)  # fmt: skip
         return found
-    return [] if saved == current else [f"{key} is {saved!r} in the checkpoint but {current!r} here"]
+    return [] if saved == current else [(key, saved, current)]
+
+
+def _describe(difference: tuple[str, Any, Any]) -> str:
+    key, saved, current = difference
+    show = lambda value: "absent" if value is _MISSING else repr(value)  # noqa: E731
+    return f"{key} is {show(saved)} in the checkpoint but {show(current)} here"

@@ -145,6 +145,9 @@ def run_demo(out: str | Path, data: str | Path, models: dict[str, int] | None = 
     started = time.perf_counter()
     out, data = Path(out), Path(data)
     models = DEMO_MODELS if models is None else models
+    for name, steps in models.items():
+        if steps < 1:  # 0 would mean "no step limit" to the trainer: every epoch of the schedule
+            raise ValueError(f"{name}: the demo trains at least 1 step, got {steps}")
     _ensure_world(data)
     try:
         return _train_score_report(out, data, models, started)
@@ -167,7 +170,8 @@ def _train_score_report(out: Path, data: Path, models: dict[str, int], started: 
         experiment = dataclasses.replace(experiment, data=dataclasses.replace(experiment.data, root=str(data)))
         experiment = replace_train(experiment, max_steps=steps, epochs=1000, val_every=-1, checkpoint_every=100)
         _say(f"training {name} for {steps} steps ({zoo.description(name)})")
-        run = train(experiment, out / name, resume="auto")
+        # A rerun with other --steps continues the earlier run: only the step count may differ.
+        run = train(experiment, out / name, resume="auto", allow_changes=("train.max_steps",))
         train_seconds = _training_time(out / name, run.seconds)
         model, experiment = load_trained(sorted((out / name).glob("step-*.pt"))[-1])
         dataset = evaluation_dataset(experiment, data, "val")

@@ -14,7 +14,7 @@ import copy
 import math
 import random
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -28,7 +28,7 @@ from occkit.data.dataset import OccupancyDataset
 from occkit.engine import distributed
 from occkit.engine.checkpoint import (
     atomic_save,
-    check_compatible,
+    check_resumable,
     ensure_writable,
     latest_checkpoint,
     load_checkpoint,
@@ -154,9 +154,10 @@ class _Trainer:
             "rng": rng_state(),
         }
 
-    def restore(self, path: Path) -> None:
+    def restore(self, path: Path, allow_changes: Sequence[str] = ()) -> list[str]:
+        """Load a checkpoint of this experiment; returns the allowed differences (see ``check_resumable``)."""
         payload = load_checkpoint(path, map_location=self.context.device)
-        check_compatible(payload, self.experiment.architecture, self.experiment.to_dict()["model"], path)
+        changes = check_resumable(payload, self.experiment.to_dict(), path, allow_changes)
         self.model.load_state_dict(payload["model"])
         if self.ema is not None and payload["ema"] is not None:
             self.ema.module.load_state_dict(payload["ema"])
@@ -167,6 +168,7 @@ class _Trainer:
         set_rng_state(payload["rng"])
         if self.context.distributed:  # one saved state, distinct per-rank draws from here on
             torch.manual_seed(self.experiment.train.seed + 7919 * self.step + self.context.rank)
+        return changes
 
     def save(self, log: RunLog | None) -> None:
         if self.context.is_main:
@@ -242,6 +244,7 @@ def train(
     progress: bool = True,
     device: str | None = None,
     on_step: Callable[[int], None] | None = None,
+    allow_changes: Sequence[str] = (),
 ) -> TrainResult:
     """Train ``experiment`` into the run folder ``out``.
 
@@ -253,6 +256,8 @@ def train(
         progress: show a progress bar (loss, samples/s, ETA) on rank 0.
         device: ``cpu``, ``cuda``, ``cuda:1``...; None picks CUDA when available.
         on_step: called with the step number after every optimizer step (tests use it to interrupt).
+        allow_changes: experiment keys (``train.lr``) or sections (``train``) that may differ from the checkpoint
+            a run resumes; any other difference is refused before anything is written, naming the keys.
     """
     started = time.perf_counter()
     out = Path(out)
@@ -265,7 +270,10 @@ def train(
         distributed.barrier()
         trainer = _Trainer(experiment, out, context)
         if start_from is not None:
-            trainer.restore(start_from)  # an incompatible checkpoint fails here, before anything is written
+            # A checkpoint of another experiment fails here, before anything is written.
+            changes = trainer.restore(start_from, allow_changes)
+            if changes and context.is_main:
+                print(f"resuming {start_from} at step {trainer.step} with changed settings: {'; '.join(changes)}")
         if context.is_main:
             (out / "config.yaml").write_text(experiment_yaml(experiment, "# written by occkit train"))
         distributed.barrier()

@@ -36,6 +36,11 @@ __all__ = ["VizConfig", "render_frames"]
 Predictor = Callable[[str], np.ndarray]
 
 
+#: An upper bound on the inches of one figure (the comparison and BEV figures are the widest, 13 in; the cameras
+#: with a legend the tallest, about 6 in for 16:9 images), for the memory estimate of ``occkit viz --dpi``.
+LARGEST_FIGURE_INCHES = (14.0, 8.0)
+
+
 @dataclass(frozen=True)
 class VizConfig:
     """What ``occkit viz`` renders."""
