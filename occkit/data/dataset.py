@@ -41,6 +41,7 @@ from occkit.data.transforms import (
     sample_image_aug,
     sanitize_points,
 )
+from occkit.errors import InputError
 from occkit.geometry.grid import OCC3D_GRID
 from occkit.types import Sample
 
@@ -54,7 +55,7 @@ _IMAGENET_MEAN = (123.675, 116.28, 103.53)
 _IMAGENET_STD = (58.395, 57.12, 57.375)
 
 
-class SampleError(RuntimeError):
+class SampleError(InputError, RuntimeError):
     """A sample cannot be loaded; the message names the sample token and the file."""
 
 
