@@ -609,6 +609,24 @@ def test_resume_of_a_flashocc_checkpoint_into_a_daocc_run(earlier_run, data, tmp
     assert _checksums(earlier_run) == before
 
 
+def test_resume_with_changed_settings_is_refused_unless_allowed(earlier_run, data, capsys):
+    from occkit.cli import main
+
+    before = _checksums(earlier_run)
+    saved_lr = load_checkpoint(latest_checkpoint(earlier_run))["experiment"]["train"]["lr"]
+    same = ("train.max_steps=24", "train.ema_decay=0.9")  # as resume_ema trained it
+    resume = [*_train_args(data, earlier_run, *same, "train.lr=0.5", "train.workers=1"), "--resume", "auto"]
+    assert main(resume) == 2
+    line = _one_error_line(capsys, "train")
+    assert f"train.lr is {saved_lr!r} in the checkpoint but 0.5 here" in line and "--allow-change train.lr" in line
+    assert "workers" not in line  # bookkeeping: changes no weight
+    assert _checksums(earlier_run) == before  # config.yaml included
+    # Allowed explicitly, the run continues (no steps are left) and its config.yaml records the new value.
+    assert main([*resume, "--allow-change", "train.lr"]) == 0
+    assert "lr: 0.5" in (earlier_run / "config.yaml").read_text()
+    assert f"train.lr: {saved_lr!r} -> 0.5" in capsys.readouterr().out
+
+
 def test_out_holding_an_earlier_run_is_not_overwritten(earlier_run, data, tmp_path, capsys):
     from occkit.cli import main
 
@@ -630,9 +648,9 @@ def test_out_below_a_file(data, tmp_path, capsys):
     blocker = tmp_path / "a-file"
     blocker.write_text("not a folder")
     assert main(_train_args(data, blocker / "run")) == 2
-    assert "cannot write to --out" in _one_error_line(capsys, "train")
+    assert f"cannot be created: {blocker} is a file" in _one_error_line(capsys, "train")
     assert main(_train_args(data, blocker)) == 2
-    assert "exists and is not a folder" in _one_error_line(capsys, "train")
+    assert f"--out {blocker} is a file; give a folder" in _one_error_line(capsys, "train")
 
 
 def _assert_unwritable_out_is_one_error(locked: Path, checkpoint: Path, data: Path, capsys) -> None:
@@ -685,5 +703,5 @@ def test_a_checkpoint_from_before_a_new_option_is_compatible_while_the_option_ke
     with pytest.raises(ValueError, match=r"old\.pt .*model\.occupancy\.lovasz_weight is 0\.0 in the checkpoint"):
         check_compatible(payload, "flashocc", changed, "old.pt")
     older["occupancy"]["retired_option"] = 1  # an option since removed: compared as saved, so named
-    with pytest.raises(ValueError, match="model.occupancy.retired_option is 1 in the checkpoint but None here"):
+    with pytest.raises(ValueError, match="model.occupancy.retired_option is 1 in the checkpoint but absent here"):
         check_compatible(payload, "flashocc", current, "old.pt")
