@@ -207,8 +207,8 @@ def test_bench_cli_end_to_end(world, tmp_path, capsys):
         (["--model", "resnet"], "unknown model 'resnet'"),
         (["--model", "flashocc_tiny", "--optimizations", "fold_bn,int8"], "unknown optimization(s) int8"),
         (["--model", "flashocc_tiny", "--precision", "fp16"], "fp16 needs a CUDA device"),
-        (["--model", "flashocc_tiny", "--device", "tpu"], "device must be cpu or cuda[:N], got 'tpu'"),
-        (["--model", "flashocc_tiny", "--data", "no/such/folder"], "dataset no/such/folder does not exist"),
+        (["--model", "flashocc_tiny", "--device", "tpu"], "--device must be cpu, cuda or cuda:N, got 'tpu'"),
+        (["--model", "flashocc_tiny", "--data", "no/such/folder"], "--data no/such/folder does not exist"),
     ],
 )
 def test_bench_cli_bad_input(arguments, message, tmp_path, capsys):

@@ -277,8 +277,8 @@ def test_cli_exports_a_checkpoint_on_a_generated_world(tmp_path, capsys):
         (["--model", "flashocc_m0", "--ckpt", "{flashocc}"], "is not a checkpoint of zoo model flashocc_m0: "
                                                              "parameter "),
         (["--model", "flashocc_tiny", "--ckpt", "{missing}"], "does not exist"),
-        (["--model", "flashocc_tiny", "--opset", "17"], "opset 17 is not available"),
-        (["--model", "flashocc_tiny", "--data", "{missing}"], "dataset root"),
+        (["--model", "flashocc_tiny", "--opset", "99"], "opset 99 is not available: the installed onnx package"),
+        (["--model", "flashocc_tiny", "--data", "{missing}"], "missing does not exist"),
     ],
 )
 def test_cli_bad_input_is_one_clear_error(arguments, message, tmp_path, capsys):
