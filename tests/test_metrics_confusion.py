@@ -178,6 +178,30 @@ def test_surroundocc_protocol_by_hand():
     assert result["miou"] == pytest.approx((1 / 3 + 1 / 2) / 2)
 
 
+def test_surroundocc_protocol_matches_the_reference_algorithm(tmp_path):
+    # tests/golden/surroundocc_metrics: SurroundOcc's evaluation run step by step on 4 fixed frames (see its README).
+    from occkit.classes import SURROUNDOCC
+    from occkit.data.labels import read_surroundocc_labels
+
+    folder = Path(__file__).parent / "golden" / "surroundocc_metrics"
+    reference = json.loads((folder / "reference.json").read_text())
+    inputs = np.load(folder / "inputs.npz")
+    total = np.zeros((17, 17), np.int64)
+    for frame in range(4):
+        np.save(tmp_path / f"{frame}.npy", inputs[f"gt_{frame}"])  # the file layout of SurroundOcc's ground truth
+        gt = read_surroundocc_labels(tmp_path / f"{frame}.npy").semantics
+        matrix = confusion_matrix(gt, inputs[f"pred_{frame}"], num_classes=17)
+        scores = np.array(reference["per_sample_scores"][frame])
+        assert [int(matrix[1:, 1:].sum()), int(matrix[1:].sum()), int(matrix[:, 1:].sum())] == scores[0].tolist()
+        assert np.array_equal(np.diag(matrix)[1:], scores[1:, 0])
+        total += matrix
+    result = surroundocc_metrics(total)
+    assert abs(result["iou"] - reference["IoU"]) <= 1e-12
+    assert abs(result["miou"] - reference["mIoU"]) <= 1e-12
+    for index, name in enumerate(SURROUNDOCC.classes[1:], start=1):
+        assert abs(result["per_class_iou"][index] - reference[name]) <= 1e-12, name
+
+
 def test_iou_conventions():
     cm = np.zeros((3, 3), np.int64)
     cm[0, 0], cm[2, 1] = 5, 2  # class 1 only predicted, class 2 only in GT
