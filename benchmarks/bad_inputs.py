@@ -221,6 +221,7 @@ def build_cases(work: Path) -> list[Case]:
         if scene["name"] == val_scene:
             scene["name"] = renamed
     _write_table(stale, "scene", scenes, mtime=old)
+    (stale / "gts" / val_scene).rename(stale / "gts" / renamed)
     splits = json.loads((stale / "splits.json").read_text())
     splits["val"] = [renamed]
     _replace_file(stale / "splits.json", json.dumps(splits).encode())

@@ -454,11 +454,10 @@ def _add_predict(parser: argparse.ArgumentParser) -> None:
 
 
 def _run_predict(args: argparse.Namespace) -> int:
-    import torch
     from tqdm import tqdm
 
     from occkit.engine import distributed
-    from occkit.engine.evaluate import evaluation_dataset, split_loader, write_prediction
+    from occkit.engine.evaluate import evaluation_dataset, predict_to_folder
 
     _check_trained_run_args(args)
     context = distributed.setup(args.device)  # under torchrun each rank writes the files of its share
@@ -469,15 +468,12 @@ def _run_predict(args: argparse.Namespace) -> int:
             _prepare_out(args.out)
         distributed.barrier()
         share = len(range(context.rank, len(dataset), context.world_size))
-        with torch.no_grad(), tqdm(total=share, unit="frame", desc="predict", disable=not context.is_main) as bar:
-            for batch in split_loader(dataset, args.batch_size, args.workers, context):
-                semantics = model.predict(batch.to(context.device)).semantics.cpu().numpy()
-                for token, grid in zip(batch.tokens, semantics, strict=True):
-                    write_prediction(args.out / f"{token}.npz", grid)
-                bar.update(len(batch))
+        with tqdm(total=share, unit="frame", desc="predict", disable=not context.is_main) as bar:
+            counts = predict_to_folder(model, dataset, args.out, args.batch_size, args.workers, context, bar.update)
         distributed.barrier()
         if context.is_main:
-            print(f"wrote {len(dataset)} predictions to {args.out} (score them with occkit eval-preds)")
+            skipped = f"; {counts['skipped']} frame(s) failed to load and were skipped" if counts["skipped"] else ""
+            print(f"wrote {counts['written']} predictions to {args.out}{skipped} (score them with occkit eval-preds)")
     finally:
         distributed.teardown()
     return 0

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import io
+import os
 import shutil
 import warnings
 from pathlib import Path
@@ -9,14 +11,17 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from PIL import Image
+from PIL import Image, ImageFile
 
+from occkit.data import dataset as dataset_module
 from occkit.data.collate import collate
 from occkit.data.dataset import DatasetConfig, OccupancyDataset, SampleError
+from occkit.data.index import load_index, read_index_header, tables_key
 from occkit.data.transforms import BevAugConfig, ImageAugConfig
 from occkit.geometry.grid import OCC3D_GRID
 from occkit.sim.generate import SimConfig, simulate_dataset
 
+VERSION = "v1.0-synth"
 CAMERAS = ("CAM_FRONT", "CAM_BACK")
 IMAGE_AUG = ImageAugConfig(final_size=(96, 176))
 
@@ -120,7 +125,7 @@ def test_bad_files_name_sample_and_file_and_can_be_skipped(root, tmp_path, caplo
     assert len(batch) == 1 and batch.tokens == [skipping.records[1].token]
     points = broken / skipping.records[1].lidar_path
     points.write_bytes(points.read_bytes()[:-4])
-    with pytest.raises(SampleError, match="not a multiple of 5"):
+    with pytest.raises(SampleError, match="not a multiple of 20"):
         _dataset(broken)[1]
 
 
@@ -162,3 +167,122 @@ def test_sensor_failure_options(root):
     assert 0.05 * len(full.points) < len(failed.points) < 0.2 * len(full.points)
     with pytest.raises(ValueError, match="CAM_SIDE"):
         _dataset(root, drop_cameras=("CAM_SIDE",))
+
+
+# ----------------------------------------------------------------------------------------------------- sensor files
+@pytest.fixture()
+def broken(root, tmp_path) -> Path:
+    """A copy of the dataset to damage."""
+    shutil.copytree(root, tmp_path / "broken")
+    return tmp_path / "broken"
+
+
+def _damage(path: Path, content: bytes | None) -> bytes:
+    """Replace (None: delete) a file; returns the original bytes."""
+    original = path.read_bytes()
+    if content is None:
+        path.unlink()
+    else:
+        path.write_bytes(content)
+    return original
+
+
+def test_images_must_match_the_calibration_and_decode_in_full(broken):
+    assert ImageFile.LOAD_TRUNCATED_IMAGES is False  # nothing in occkit turns PIL's truncation error off
+    dataset = _dataset(broken)
+    record = dataset.records[1]
+    camera = record.cameras["CAM_BACK"]
+    path = broken / camera.path
+    small = io.BytesIO()
+    Image.new("RGB", (50, 40)).save(small, "JPEG")
+    jpeg = path.read_bytes()
+    cases = [
+        (small.getvalue(), rf"{path.name} is 50x40 pixels but its calibration .* says {camera.width}x{camera.height}"),
+        (jpeg[: len(jpeg) // 2], rf"cannot read image .*{path.name}: image file is truncated"),
+        (b"", rf"cannot read image .*{path.name}: cannot identify image file"),
+        (None, rf"image not found: .*{path.name}"),
+    ]
+    for content, message in cases:
+        original = _damage(path, content)
+        with pytest.raises(SampleError, match=rf"^sample {record.token}: .*{message}"):
+            dataset[1]
+        path.write_bytes(original)
+    assert dataset[1] is not None
+
+
+def test_point_files_must_hold_whole_points(broken):
+    dataset = _dataset(broken, cameras=(), sweeps=9)
+    record = dataset.records[1]
+    key, sweep = broken / record.lidar_path, broken / record.sweeps[0].path
+    points = key.read_bytes()
+    cases = [
+        (key, points[:22], rf"{key.name} holds 22 bytes, not a multiple of 20"),
+        (key, points[:-4], rf"{key.name} holds {len(points) - 4} bytes, not a multiple of 20"),
+        (key, b"", rf"{key.name} is empty \(0 points\)"),
+        (key, None, rf"point file not found: .*{key.name}"),
+        (sweep, points[:-3], rf"{sweep.name} holds {len(points) - 3} bytes"),
+        (sweep, None, rf"point file not found: .*{sweep.name}"),
+    ]
+    for path, content, message in cases:
+        original = _damage(path, content)
+        with pytest.raises(SampleError, match=rf"^sample {record.token}: .*{message}"):
+            dataset[1]
+        path.write_bytes(original)
+    # An empty sweep leaves the frame usable: a warning names it, the other sweeps load.
+    full = dataset[1].points
+    original = _damage(sweep, b"")
+    with pytest.warns(UserWarning, match=rf"sample {record.token}: sweep .*{sweep.name} is empty \(0 points\)"):
+        fewer = dataset[1].points
+    assert 0 < len(fewer) < len(full)
+    sweep.write_bytes(original)
+
+
+def test_a_missing_or_corrupt_label_file_is_a_sample_error(broken):
+    dataset = _dataset(broken, cameras=(), sweeps=-1)
+    record = dataset.records[0]
+    path = broken / record.occ_path
+    _damage(path, b"PK\x03\x04 not a zip")
+    with pytest.raises(SampleError, match=rf"^sample {record.token}: .*labels\.npz: cannot read labels"):
+        dataset[0]
+    path.unlink()
+    with pytest.raises(SampleError, match=rf"^sample {record.token}: .*labels\.npz: label file not found"):
+        dataset[0]
+
+
+# ----------------------------------------------------------------------------------------------------- index cache
+def test_index_cache_follows_the_tables_content_not_their_modification_time(root, tmp_path, monkeypatch):
+    data = tmp_path / "tables"
+    shutil.copytree(root / VERSION, data / VERSION)
+    first = _dataset(data, cameras=())
+    cache = data / ".occkit" / f"occkit-index-{VERSION}-0.json"
+    assert read_index_header(cache)["tables_key"] == tables_key(data, VERSION, 0)
+    with monkeypatch.context() as patch:  # unchanged tables: the cache is read, nothing is rebuilt
+        patch.setattr(dataset_module, "build_index", None)
+        assert _dataset(data, cameras=()).records == first.records
+    # A table edited in place, same size, its old modification time put back (older than the cache).
+    path = data / VERSION / "scene.json"
+    stat = path.stat()
+    path.write_text(path.read_text().replace("scene-0002", "scene-0003"))
+    os.utime(path, ns=(stat.st_atime_ns, stat.st_mtime_ns))
+    assert path.stat().st_size == stat.st_size and cache.stat().st_mtime_ns > path.stat().st_mtime_ns
+    again = _dataset(data, cameras=())
+    assert sorted({r.scene for r in again.records}) == ["scene-0001", "scene-0003"]
+    assert read_index_header(cache)["tables_key"] == tables_key(data, VERSION, 0)
+
+
+def test_a_corrupt_or_unsafe_index_cache_is_rebuilt_with_a_warning(root, tmp_path):
+    data = tmp_path / "tables"
+    shutil.copytree(root / VERSION, data / VERSION)
+    records = _dataset(data, cameras=()).records
+    cache = data / ".occkit" / f"occkit-index-{VERSION}-0.json"
+    text = cache.read_text()
+    unsafe = text.replace(records[0].token, "../../escape_tok", 1)  # the header's key still matches
+    for content in ("{not json", text[: len(text) // 2], unsafe, "\x00\xff"):
+        cache.write_text(content)
+        with pytest.warns(UserWarning, match=rf"{cache.name}: unreadable index cache, rebuilding it"):
+            assert _dataset(data, cameras=()).records == records
+        assert load_index(cache)[0] == records
+    cache.write_text(text.replace('"tables_key"', '"other_key"', 1))  # no key (an older occkit): rebuilt quietly
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert _dataset(data, cameras=()).records == records

@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import contextlib
 import copy
+import dataclasses
 import json
+import os
 import shutil
 from collections import defaultdict
 from pathlib import Path
@@ -24,7 +26,9 @@ from occkit.data.index import (
     build_index,
     index_tables,
     load_index,
+    read_index_header,
     save_index,
+    tables_key,
 )
 from occkit.data.splits import read_split_file, scene_split, split_scenes
 from occkit.data.tables import TableError, load_tables
@@ -400,7 +404,8 @@ def test_repeated_and_dangling_tokens(tables_copy):
         load_tables(tables_copy, VERSION)
     _edit(tables_copy, "ego_pose", lambda rows: rows.pop())
     _edit(tables_copy, "sample_data", lambda rows: rows[0].update(ego_pose_token="f" * 32))
-    with pytest.raises(TableError, match=r"sample_data\.json: record \w+ refers to ego_pose token 'f{32}', which "):
+    message = r"sample_data\.json: record \w+\.ego_pose_token refers to ego_pose token 'f{32}', which "
+    with pytest.raises(TableError, match=message):
         build_index(tables_copy, VERSION)
 
 
@@ -488,3 +493,211 @@ def test_cli_index_bad_input_is_one_line(root, tmp_path, capsys):
     assert main(["index", "--root", str(tmp_path / "none"), "--version", VERSION, "--out", out]) == 2
     assert "does not exist" in capsys.readouterr().err
     assert not Path(out).exists()
+
+
+# ----------------------------------------------------------------------------------------------------- hostile tables
+def _rename(folder: Path, table: str, field: str, old: str, new: str) -> None:
+    """Replace ``old`` by ``new`` in ``field`` of every record of ``table`` (a token and its references)."""
+    _edit(folder, table, lambda rows: [row.update({field: new}) for row in rows if row.get(field) == old])
+
+
+def _rename_sample(folder: Path, old: str, new: str) -> None:
+    """A sample token renamed consistently in every table that refers to it."""
+    _rename(folder, "sample", "token", old, new)
+    for field in ("prev", "next"):
+        _rename(folder, "sample", field, old, new)
+    for table in ("sample_data", "sample_annotation"):
+        _rename(folder, table, "sample_token", old, new)
+    for field in ("first_sample_token", "last_sample_token"):
+        _rename(folder, "scene", field, old, new)
+
+
+@pytest.mark.parametrize("token", ["../../escape_tok", "/tmp/escape_tok", "", ".hidden", "a" * 129, "a/b", "tok\n"])
+def test_unsafe_sample_tokens_are_refused_at_build(tables_copy, records, token):
+    _rename_sample(tables_copy, records[4].token, token)
+    with pytest.raises(TableError, match=r"^v1\.0-synth/sample\.json: record '.*\.token: .* is not a safe name"):
+        build_index(tables_copy, VERSION)
+
+
+def test_unsafe_scene_names_and_tokens_are_refused_at_build(tables_copy, records):
+    _rename(tables_copy, "scene", "name", "scene-0002", "../../../escape_scene")
+    with pytest.raises(TableError, match=r"scene\.json: record \w+\.name: '\.\./\.\./\.\./escape_scene' is not a safe"):
+        build_index(tables_copy, VERSION)
+    _rename(tables_copy, "scene", "name", "../../../escape_scene", "scene-0002")
+    old = records[0].scene_token
+    _rename(tables_copy, "scene", "token", old, "/abs")
+    _rename(tables_copy, "sample", "scene_token", old, "/abs")
+    with pytest.raises(TableError, match=r"scene\.json: record '/abs'\.token: '/abs' is not a safe name"):
+        build_index(tables_copy, VERSION)
+
+
+def test_cli_index_refuses_an_escaping_token(tables_copy, records, tmp_path, capsys):
+    _rename_sample(tables_copy, records[4].token, "../../escape_tok")
+    out = tmp_path / "index.json"
+    assert main(["index", "--root", str(tables_copy), "--version", VERSION, "--out", str(out)]) == 2
+    error = capsys.readouterr().err.strip()
+    assert error.startswith("occkit index: error: v1.0-synth/sample.json: record '../../escape_tok'.token:")
+    assert "\n" not in error and not out.exists()
+
+
+def test_unsafe_file_paths_are_refused_at_build(tables_copy, records):
+    for bad in ("/etc/passwd", "samples/../../outside.pcd.bin", "samples\\x.pcd.bin"):
+        _rename(tables_copy, "sample_data", "filename", records[1].lidar_path, bad)
+        with pytest.raises(TableError, match=r"sample_data\.json: record \w+\.filename: "):
+            build_index(tables_copy, VERSION)
+        _rename(tables_copy, "sample_data", "filename", bad, records[1].lidar_path)
+    assert [r.lidar_path for r in build_index(tables_copy, VERSION)] == [r.lidar_path for r in records]
+
+
+@pytest.mark.parametrize(
+    "field, value, message",
+    [
+        ("token", "../../escape_tok", r"\.token: '\.\./\.\./escape_tok' is not a safe name"),
+        ("token", "/abs/tok", r"\.token: '/abs/tok' is not a safe name"),
+        ("scene", "../../../escape_scene", r"\.scene: .* is not a safe name"),
+        ("scene_token", "a/b", r"\.scene_token: 'a/b' is not a safe name"),
+        ("prev", "..", r"\.prev: '\.\.' is not a safe name"),
+        ("lidar_path", "/etc/passwd", r"\.lidar_path: '/etc/passwd' is an absolute path"),
+        ("occ_path", "gts/../../x/labels.npz", r"\.occ_path: .* has a '\.\.' component"),
+        ("occ_path", "", r"\.occ_path: expected a relative path"),
+    ],
+)
+def test_load_index_refuses_unsafe_names_and_paths(records, tmp_path, field, value, message):
+    broken = records[1].to_dict() | {field: value}
+    path = tmp_path / "index.json"
+    path.write_text(json.dumps({"format": INDEX_FORMAT, "records": [records[0].to_dict(), broken]}))
+    with pytest.raises(IndexFormatError, match=r"index\.json: record 1" + message):
+        load_index(path)
+
+
+def test_from_dict_refuses_unsafe_sweep_and_camera_paths(records):
+    data = records[1].to_dict()
+    data["sweeps"][2]["path"] = "../sweeps/x.pcd.bin"
+    with pytest.raises(IndexFormatError, match=r"^here\.sweeps\[2\]\.path: .*'\.\.' component"):
+        FrameRecord.from_dict(data, "here")
+    data = records[1].to_dict()
+    data["cameras"]["CAM_BACK"]["path"] = "C:/images/x.jpg"
+    with pytest.raises(IndexFormatError, match=r"^here\.cameras\.CAM_BACK\.path: .* absolute path"):
+        FrameRecord.from_dict(data, "here")
+    # Records of info files without a scene keep empty scene names.
+    data = records[1].to_dict() | {"scene": "", "scene_token": "", "prev": "", "next": ""}
+    assert FrameRecord.from_dict(data).scene == ""
+
+
+def test_unknown_references_name_file_record_and_field(tables_copy, records):
+    # A sample of an unknown scene was dropped without a word.
+    _edit(tables_copy, "sample", lambda rows: rows[4].update(scene_token="e" * 32))
+    with pytest.raises(TableError, match=r"sample\.json: record \w+\.scene_token refers to scene token 'e{32}', which"):
+        build_index(tables_copy, VERSION)
+    _edit(tables_copy, "sample", lambda rows: rows[4].update(scene_token=records[4].scene_token))
+    cases = [
+        ("sample_data", "sample_token", "sample"),
+        ("sample_annotation", "sample_token", "sample"),
+        ("sample", "prev", "sample"),
+        ("sample_data", "calibrated_sensor_token", "calibrated_sensor"),
+        ("sample_data", "ego_pose_token", "ego_pose"),
+    ]
+    for table, field, target in cases:
+        path = tables_copy / VERSION / f"{table}.json"
+        original = path.read_text()
+        _edit(tables_copy, table, lambda rows, field=field: rows[-1].update({field: "d" * 32}))
+        message = rf"^v1\.0-synth/{table}\.json: record \w+\.{field} refers to {target} token 'd{{32}}', which "
+        with pytest.raises(TableError, match=message + rf"v1\.0-synth/{target}\.json does not have$"):
+            build_index(tables_copy, VERSION)
+        path.write_text(original)
+
+
+def _first(folder: Path, table: str, where=lambda row: True) -> dict:
+    return next(row for row in json.loads((folder / VERSION / f"{table}.json").read_text()) if where(row))
+
+
+@pytest.mark.parametrize("table", ["ego_pose", "calibrated_sensor", "sample_annotation"])
+@pytest.mark.parametrize("rotation", [[0, 0, 0, 0], [0.0, 1e-9, 0.0, 0.0]])
+def test_zero_quaternions_are_errors_naming_the_record(tables_copy, table, rotation):
+    used = _first(tables_copy, table, lambda row: table != "calibrated_sensor" or row["camera_intrinsic"] == [])
+    _edit(tables_copy, table, lambda rows: [row.update(rotation=rotation) for row in rows if row is not None and
+                                            row["token"] == used["token"]])  # fmt: skip
+    message = rf"^v1\.0-synth/{table}\.json: record {used['token']}\.rotation: .* has norm .*: not a rotation"
+    with pytest.raises(TableError, match=message):
+        build_index(tables_copy, VERSION)
+
+
+def test_quaternions_of_other_norms_are_normalised(tables_copy, records):
+    _edit(tables_copy, "ego_pose", lambda rows: [row.update(rotation=[2 * q for q in row["rotation"]]) for row in rows])
+    scaled = build_index(tables_copy, VERSION)
+    for a, b in zip(scaled, records, strict=True):
+        np.testing.assert_allclose(a.ego2global, b.ego2global, atol=1e-12)
+
+
+@pytest.mark.parametrize(
+    "table, field, value, expected",
+    [
+        ("ego_pose", "translation", "1.0, 2.0, 3.0", "a list of 3 finite numbers"),
+        ("ego_pose", "translation", ["1", "2", "x"], "a list of 3 finite numbers"),
+        ("ego_pose", "translation", [1.0, 2.0], "a list of 3 finite numbers"),
+        ("ego_pose", "rotation", [1.0, 0.0, 0.0], "a list of 4 finite numbers"),
+        ("calibrated_sensor", "translation", [1.0, float("nan"), 0.0], "a list of 3 finite numbers"),
+        ("sample_annotation", "size", [1.0, 2.0, [3.0]], "a list of 3 finite numbers"),
+        ("sample_annotation", "num_lidar_pts", "12", "an integer"),
+        ("sample_annotation", "num_lidar_pts", -1, "a count >= 0"),
+        ("sample_annotation", "visibility_token", 4, "a string"),
+        ("sample_data", "timestamp", "1700000000500000", "an integer"),
+        ("sample_data", "width", 1600.0, "an integer"),
+        ("sample", "timestamp", None, "an integer"),
+    ],
+)
+def test_wrongly_typed_fields_name_file_record_and_field(tables_copy, table, field, value, expected):
+    def used(row: dict) -> bool:
+        return table != "sample_data" or "CAM_FRONT" in row["filename"]
+
+    record = _first(tables_copy, table, used)
+    _edit(tables_copy, table, lambda rows: [row.update({field: value}) for row in rows if row == record])
+    message = rf"^v1\.0-synth/{table}\.json: record {record['token']}\.{field}: expected {expected}, got "
+    with pytest.raises(TableError, match=message):
+        build_index(tables_copy, VERSION)
+
+
+def test_camera_intrinsics_and_token_types(tables_copy):
+    camera = _first(tables_copy, "calibrated_sensor", lambda row: row["camera_intrinsic"] != [])
+    _edit(tables_copy, "calibrated_sensor", lambda rows: [row.update(camera_intrinsic=[[1, 0, 0], [0, 1, 0]])
+                                                          for row in rows if row == camera])  # fmt: skip
+    with pytest.raises(TableError, match=rf"calibrated_sensor\.json: record {camera['token']}\.camera_intrinsic: "):
+        build_index(tables_copy, VERSION)
+    # A reference that is no token at all (a list cannot even be looked up).
+    _edit(tables_copy, "sample_data", lambda rows: rows[3].update(sample_token=["x"]))
+    with pytest.raises(TableError, match=r"sample_data\.json: record '\w+'\.sample_token: expected a token, got \["):
+        load_tables(tables_copy, VERSION)
+    _edit(tables_copy, "sample_data", lambda rows: rows[3].update(sample_token="x"))
+    _edit(tables_copy, "sensor", lambda rows: rows[0].update(token=["x"]))
+    with pytest.raises(TableError, match=r"sensor\.json: record 0: token must be a string, got \['x'\]"):
+        load_tables(tables_copy, VERSION)
+
+
+# ----------------------------------------------------------------------------------------------------- cache key
+def test_tables_key_follows_the_content_not_the_modification_time(tables_copy):
+    key = tables_key(tables_copy, VERSION, 10)
+    assert key.startswith("sha256:") and key == tables_key(tables_copy, VERSION, 10)
+    assert tables_key(tables_copy, VERSION, 9) != key
+    path = tables_copy / VERSION / "scene.json"
+    stat = path.stat()
+    path.write_text(path.read_text().replace("scene-0002", "scene-0003"))  # same size
+    os.utime(path, ns=(stat.st_atime_ns, stat.st_mtime_ns))
+    assert path.stat().st_size == stat.st_size and path.stat().st_mtime_ns == stat.st_mtime_ns
+    assert tables_key(tables_copy, VERSION, 10) != key
+
+
+def test_read_index_header(records, tmp_path):
+    path = save_index(records[:2], tmp_path / "index.json", {"version": VERSION, "root": "x", "max_sweeps": 3})
+    assert read_index_header(path) == load_index(path)[1]
+    path.write_text('{"format": "occkit-index/1", "records": []}')
+    with pytest.raises(IndexFormatError, match="first line is not an occkit index header"):
+        read_index_header(path)
+
+
+def test_save_index_refuses_nan_and_leaves_no_partial_file(records, tmp_path):
+    pose = records[1].ego2global.copy()
+    pose[0, 0] = np.nan  # what a zero quaternion gave before it was an error
+    broken = dataclasses.replace(records[1], ego2global=pose)
+    with pytest.raises(ValueError, match=rf"index\.json: record 1 \(sample {broken.token}\) holds NaN or infinite"):
+        save_index([records[0], broken], tmp_path / "index.json", {"version": VERSION, "root": "x", "max_sweeps": 1})
+    assert list(tmp_path.iterdir()) == []

@@ -313,16 +313,40 @@ def test_defaults_for_keys_a_file_lacks(root, records, bevdet, tmp_path):
     for info, record in zip(data["infos"], records, strict=True):
         for key in ("scene_token", "scene_name", "gt_boxes", "gt_names", "gt_velocity", "num_lidar_pts"):
             del info[key]
-        info["lidar_path"] = f"/elsewhere/{record.lidar_path}"
+        info["lidar_path"] = f"elsewhere/{record.lidar_path}"
+        for item in [*info["sweeps"], *info["cams"].values()]:  # paths under the old root would be absolute here
+            item["data_path"] = item["data_path"].replace(f"{root}/", "./data/nuscenes/")
     bare = convert_infos(data, tmp_path)  # a root without the images or labels
-    for i, (record, original) in enumerate(zip(bare, records, strict=True)):
+    for record, original in zip(bare, records, strict=True):
         assert (record.scene, record.prev, record.next, record.index_in_scene) == ("", "", "", 0)
         assert record.occ_path is None and record.num_boxes == 0 and record.boxes_ego.shape == (0, 9)
         assert {(c.width, c.height) for c in record.cameras.values()} == {DEFAULT_IMAGE_SIZE}
-        # Paths under neither the root nor data/nuscenes are kept as they are.
-        assert record.lidar_path == f"/elsewhere/{original.lidar_path}"
-        camera = original.cameras["CAM_FRONT"].path
-        assert record.cameras["CAM_FRONT"].path == (camera if i == 0 else f"{root}/{camera}")
+        # Relative paths under neither the root nor data/nuscenes are kept as they are.
+        assert record.lidar_path == f"elsewhere/{original.lidar_path}"
+        assert record.cameras["CAM_FRONT"].path == original.cameras["CAM_FRONT"].path
+
+
+@pytest.mark.parametrize(
+    "edit, message",
+    [
+        # Absolute paths elsewhere and '..' would read outside the root.
+        (lambda info: info.update(lidar_path="/elsewhere/a.pcd.bin"), r"record field lidar_path: .* absolute path"),
+        (lambda info: info["cams"]["CAM_BACK"].update(data_path="../x.jpg"), r"cameras\.CAM_BACK\.path: .*'\.\.'"),
+        (lambda info: info["sweeps"][0].update(data_path="samples/../../x"), r"sweeps\[0\]\.path: .*'\.\.'"),
+        (lambda info: info.update(occ_path="/gts/a"), r"occ_path: .* absolute path"),
+        # Tokens and scene names become file names.
+        (lambda info: info.update(token="../../escape_tok"), r"\.token: '\.\./\.\./escape_tok' is not a safe name"),
+        (lambda info: info.update(scene_name="../../../escape_scene"), r"\.scene_name: .* is not a safe name"),
+        (lambda info: info.update(scene_token="/abs"), r"\.scene_token: '/abs' is not a safe name"),
+        # A zero quaternion is no rotation (normalising it gives NaN).
+        (lambda info: info.update(ego2global_rotation=[0.0, 0.0, 0.0, 0.0]), r"ego2global_rotation: quaternion"),
+    ],
+)
+def test_unsafe_names_paths_and_rotations_name_the_entry(root, bevdet, edit, message):
+    data = copy.deepcopy(bevdet)
+    edit(data["infos"][1])
+    with pytest.raises(InfoFileError, match=r"info file: entry 1 .*" + message):
+        convert_infos(data, root)
 
 
 # ----------------------------------------------------------------------------------------------------- errors

@@ -290,7 +290,7 @@ def test_cli_renders_ground_truth_predictions_and_page(data, tmp_path, capsys):
         with np.load(path) as labels:
             semantics = labels["semantics"].copy()
         semantics[semantics == ROAD] = 12  # the road becomes other_flat: a wrong class in every frame
-        write_prediction(predictions / f"{token}.npz", semantics)
+        write_prediction(predictions, token, semantics)
     out = tmp_path / "viz"
     assert main(["viz", "--data", str(data), "--frames", "2", "--pred", str(predictions), "--out", str(out),
                  "--colors", "128"]) == 0  # fmt: skip

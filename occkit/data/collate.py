@@ -40,12 +40,13 @@ def _stack(samples: list[Sample], name: str) -> Tensor | None:
 def collate(samples: list[Sample | None]) -> Batch:
     """Batch samples; ``None`` entries (samples skipped by ``on_error="skip"``) are left out.
 
-    Points are padded to the longest cloud with zeros and their counts kept in ``num_points``.
+    When every sample was skipped the batch is empty (``len(batch) == 0``, no tensors): evaluation and prediction
+    loops pass over it. Points are padded to the longest cloud with zeros and their counts kept in ``num_points``.
     """
     kept = [s for s in samples if s is not None]
-    if not kept:
-        raise ValueError("cannot collate an empty batch: every sample was skipped")
     batch = Batch(tokens=[s.token for s in kept], scenes=[s.scene for s in kept])
+    if not kept:
+        return batch
     for name in _STACKED:
         setattr(batch, name, _stack(kept, name))
     if any(s.points is not None for s in kept):

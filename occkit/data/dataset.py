@@ -2,7 +2,8 @@
 
 Works on any nuScenes + Occ3D layout (the real datasets and occkit's synthetic world). The index is built from the
 nuScenes tables on first use and cached as JSON beside the tables (or in ``~/.cache/occkit`` when the dataset is
-read-only), so there is no separate data-preparation step.
+read-only), so there is no separate data-preparation step. The cache is keyed on the tables' content
+(:func:`~occkit.data.index.tables_key`): a changed table rebuilds it, whatever its modification time.
 
 Augmentation draws are seeded by ``(seed, epoch, index)``: a run is reproducible whatever the number of workers.
 """
@@ -18,11 +19,11 @@ from typing import Literal
 
 import numpy as np
 import torch
-from PIL import Image, UnidentifiedImageError
+from PIL import Image
 from torch import Tensor
 
 from occkit.classes import DETECTION_CLASSES
-from occkit.data.index import FrameRecord, build_index, load_index, save_index
+from occkit.data.index import FrameRecord, build_index, load_index, read_index_header, save_index, tables_key
 from occkit.data.labels import LabelError, read_occ3d_labels
 from occkit.data.lidar_maps import depth_map, height_map
 from occkit.data.splits import split_scenes
@@ -96,28 +97,54 @@ class DatasetConfig:
     depth_downsample: int = 0
     """Return LiDAR depth and height maps at this feature stride (e.g. 16); 0 for none."""
     on_error: Literal["raise", "skip"] = "raise"
-    """A broken sample raises, or is skipped (returned as None, logged and counted)."""
+    """A broken sample raises, or is skipped (logged and counted): returned as None, which :func:`collate` leaves
+    out, or replaced by the next sample that loads where the dataset's ``refill`` is set (training)."""
     seed: int = 0
     """Seed of the augmentation draws."""
 
 
+#: Bytes per point of a nuScenes ``.pcd.bin``: five float32 (x, y, z, intensity, ring index).
+POINT_BYTES = 20
+
+
 def _read_points(path: Path, token: str) -> np.ndarray:
+    """``(N, 5)`` float32 points; the file's byte size must be a whole number of points (``np.fromfile`` alone
+    would drop a partial point at the end without a word)."""
     try:
-        raw = np.fromfile(path, dtype=np.float32)
+        with open(path, "rb") as stream:
+            size = os.fstat(stream.fileno()).st_size
+            if size % POINT_BYTES:
+                raise SampleError(
+                    f"sample {token}: {path} holds {size} bytes, not a multiple of {POINT_BYTES} (5 float32 per "
+                    "point: x, y, z, intensity, ring); the file is truncated or not a nuScenes .pcd.bin"
+                )
+            raw = np.fromfile(stream, dtype=np.float32)
+    except FileNotFoundError:
+        raise SampleError(f"sample {token}: point file not found: {path}") from None
     except OSError as error:
         raise SampleError(f"sample {token}: cannot read points {path}: {error.strerror or error}") from error
-    if raw.size % 5:
-        raise SampleError(f"sample {token}: {path} holds {raw.size} floats, not a multiple of 5 (x, y, z, i, ring)")
+    if raw.size * 4 != size:
+        raise SampleError(f"sample {token}: {path} changed while it was read ({size} bytes, then {raw.size * 4})")
     return raw.reshape(-1, 5)
 
 
-def _read_image(path: Path, token: str) -> Image.Image:
+def _read_image(path: Path, token: str, size: tuple[int, int]) -> Image.Image:
+    """The RGB image, decoded in full here (a truncated file is an error, never a partly grey image), of ``size``
+    (width, height) as the calibration says: intrinsics hold for that size only."""
     try:
         with Image.open(path) as image:
+            if image.size != size:
+                raise SampleError(
+                    f"sample {token}: {path} is {image.size[0]}x{image.size[1]} pixels but its calibration "
+                    f"(sample_data width and height) says {size[0]}x{size[1]}"
+                )
+            image.load()  # PIL decodes lazily: decoding errors of a truncated file surface here
             return image.convert("RGB")
     except FileNotFoundError:
         raise SampleError(f"sample {token}: image not found: {path}") from None
-    except (OSError, UnidentifiedImageError) as error:
+    # UnidentifiedImageError (empty or not an image) and "image file is truncated" are OSErrors; PIL raises
+    # SyntaxError or ValueError for some malformed headers, DecompressionBombError for absurd sizes.
+    except (OSError, SyntaxError, ValueError, Image.DecompressionBombError) as error:
         raise SampleError(f"sample {token}: cannot read image {path}: {error}") from error
 
 
@@ -143,21 +170,30 @@ class OccupancyDataset(torch.utils.data.Dataset):
         self.records = records
         self.epoch = 0
         self.skipped = 0
+        """Samples that failed to load and were skipped, in this process (each DataLoader worker counts its own)."""
+        self.refill = False
+        """With ``on_error="skip"``: replace a sample that fails by the next index of the split that loads, with the
+        augmentation draws of the index it stands in for, so batches stay full and a run stays a pure function of
+        (seed, epoch, index). Training sets it; evaluation must not (a frame would be scored twice)."""
+        self.replaced = 0
+        """Samples replaced so far under ``refill``, in this process."""
 
     def _load_records(self) -> list[FrameRecord]:
         if self.config.index is not None:
             return load_index(self.config.index)[0]
         max_sweeps = max(self.config.sweeps, 0)
         name = f"occkit-index-{self.config.version}-{max_sweeps}.json"
-        for cache in (self.root / ".occkit" / name, Path.home() / ".cache" / "occkit" / _slug(self.root) / name):
-            if cache.is_file() and cache.stat().st_mtime >= _tables_mtime(self.root / self.config.version):
-                return load_index(cache)[0]
+        caches = (self.root / ".occkit" / name, Path.home() / ".cache" / "occkit" / _slug(self.root) / name)
+        key = tables_key(self.root, self.config.version, max_sweeps)
+        for cache in caches:
+            records = _read_cache(cache, key)
+            if records is not None:
+                return records
         records = build_index(self.root, self.config.version, max_sweeps=max_sweeps)
-        for cache in (self.root / ".occkit" / name, Path.home() / ".cache" / "occkit" / _slug(self.root) / name):
+        meta = {"version": self.config.version, "root": str(self.root), "max_sweeps": max_sweeps, "tables_key": key}
+        for cache in caches:
             try:
-                save_index(
-                    records, cache, {"version": self.config.version, "root": str(self.root), "max_sweeps": max_sweeps}
-                )
+                save_index(records, cache, meta)
                 break
             except OSError:
                 continue
@@ -171,10 +207,24 @@ class OccupancyDataset(torch.utils.data.Dataset):
         return len(self.records)
 
     def __getitem__(self, index: int) -> Sample | None:
-        record = self.records[index]
+        sample = self._try(index, index)
+        if sample is not None or not self.refill:
+            return sample
+        for offset in range(1, len(self.records)):
+            other = (index + offset) % len(self.records)
+            sample = self._try(other, index)
+            if sample is not None:
+                self.replaced += 1
+                log.warning("sample %s (index %d) replaced by sample %s (index %d); %d replaced so far",
+                            self.records[index].token, index, sample.token, other, self.replaced)  # fmt: skip
+                return sample
+        raise SampleError(f"{self.root}: no sample of split {self.config.split!r} loads (on_error=skip)")
+
+    def _try(self, index: int, draws: int) -> Sample | None:
+        """Sample ``index`` with the augmentation draws of index ``draws``; None if it fails and errors are skipped."""
         try:
-            return self._load(record, np.random.default_rng([self.config.seed, self.epoch, index]))
-        except (SampleError, LabelError) as error:
+            return self._load(self.records[index], np.random.default_rng([self.config.seed, self.epoch, draws]))
+        except SampleError as error:
             if self.config.on_error == "raise":
                 raise
             self.skipped += 1
@@ -218,7 +268,7 @@ class OccupancyDataset(torch.utils.data.Dataset):
         images, intrinsics, cam2ego, img_aug = [], [], [], []
         for name in self.config.cameras:
             camera = record.cameras[name]
-            image = _read_image(self.root / camera.path, record.token)
+            image = _read_image(self.root / camera.path, record.token, (camera.width, camera.height))
             params = sample_image_aug(self.config.image_aug, image.size, self.config.augment, rng)
             pixels = torch.from_numpy(np.array(augment_image(image, params))).permute(2, 0, 1).float()  # (3, H, W)
             images.append((pixels - mean) / std)
@@ -249,12 +299,20 @@ class OccupancyDataset(torch.utils.data.Dataset):
     def _load_points(self, record: FrameRecord, sample: Sample, rng: np.random.Generator) -> Tensor:
         """Key frame plus sweeps in the key LiDAR frame, ``(x, y, z, intensity, time lag)``; returns the key points."""
         path = self.root / record.lidar_path
-        key = self._degrade(sanitize_points(torch.from_numpy(_read_points(path, record.token).copy()), str(path)), rng)
+        raw = _read_points(path, record.token)
+        if len(raw) == 0:
+            # A LiDAR key frame always has returns; an empty file is a failed copy, and scoring it skews the metrics.
+            raise SampleError(f"sample {record.token}: {path} is empty (0 points)")
+        key = self._degrade(sanitize_points(torch.from_numpy(raw.copy()), str(path)), rng)
         key[:, 4] = 0.0  # the ring column becomes the time lag
         clouds = [key]
         for sweep in record.sweeps[: self.config.sweeps]:
             sweep_path = self.root / sweep.path
-            points = sanitize_points(torch.from_numpy(_read_points(sweep_path, record.token).copy()), str(sweep_path))
+            raw = _read_points(sweep_path, record.token)
+            if len(raw) == 0:
+                # Sweeps only densify the key frame: an empty one leaves the frame usable, so it is named, not fatal.
+                warnings.warn(f"sample {record.token}: sweep {sweep_path} is empty (0 points)", stacklevel=2)
+            points = sanitize_points(torch.from_numpy(raw.copy()), str(sweep_path))
             points = self._degrade(points, rng)
             transform = _matrix(sweep.sweep2lidar)
             points[:, :3] = points[:, :3] @ transform[:3, :3].T + transform[:3, 3]
@@ -274,7 +332,10 @@ class OccupancyDataset(torch.utils.data.Dataset):
     def _load_occupancy(self, record: FrameRecord, sample: Sample, occ_aug: Tensor) -> None:
         if record.occ_path is None:
             raise SampleError(f"sample {record.token}: no Occ3D labels under {self.root / 'gts' / record.scene}")
-        labels = read_occ3d_labels(self.root / record.occ_path, record.token)
+        try:
+            labels = read_occ3d_labels(self.root / record.occ_path, record.token)
+        except LabelError as error:  # one error type for every file of a sample (its message names both)
+            raise SampleError(str(error)) from error
         sample.voxel_semantics = torch.from_numpy(
             augment_occupancy(labels.semantics, occ_aug, OCC3D_GRID, 255, empty=17)
         )
@@ -286,9 +347,16 @@ def _slug(path: Path) -> str:
     return str(path.resolve()).strip(os.sep).replace(os.sep, "_")
 
 
-def _tables_mtime(folder: Path) -> float:
+def _read_cache(path: Path, key: str) -> list[FrameRecord] | None:
+    """The records of an index cache built from tables with ``key``; None if there is none, it is of other tables
+    (or parameters), or it is unreadable (then with a warning naming the file): the caller rebuilds it."""
     try:
-        return max(p.stat().st_mtime for p in folder.glob("*.json"))
-    except ValueError:
-        warnings.warn(f"{folder}: no nuScenes tables found", stacklevel=3)
-        return 0.0
+        if read_index_header(path).get("tables_key") != key:
+            log.info("%s: built from other tables or settings; rebuilding it", path)
+            return None
+        return load_index(path)[0]
+    except FileNotFoundError:
+        return None
+    except (OSError, ValueError) as error:  # IndexFormatError is a ValueError
+        warnings.warn(f"{path}: unreadable index cache, rebuilding it ({error})", stacklevel=3)
+        return None

@@ -36,7 +36,9 @@ Conventions confirmed in the writers:
   targets with points, in the ego frame at CAM_FRONT's timestamp. It is ignored; boxes come from ``gt_boxes``.
 
 Conversion: paths that start with ``root`` or ``data/nuscenes`` (``./`` or not) are made relative to the root, other
-paths are kept as they are. Ego-frame boxes are the LiDAR-frame boxes through ``lidar2ego``, the box rotation taken as
+relative paths are kept as they are; an absolute path elsewhere or one with a ``..`` component is an error (records
+hold paths under the root), as are tokens and scene names that are no safe names (:mod:`occkit.data.names`).
+Ego-frame boxes are the LiDAR-frame boxes through ``lidar2ego``, the box rotation taken as
 the turn by ``yaw`` about the LiDAR z axis and the vertical velocity as 0 (the files keep neither): where the ego
 pitches and rolls, yaw and velocity differ from the index's by about pitch x roll and pitch x vz. Fields a file lacks
 get these defaults:
@@ -79,6 +81,7 @@ from occkit.data.index import (
     quaternions_to_rotations,
     rotation_yaw,
 )
+from occkit.data.names import is_safe_relative_path, safe_name, safe_relative_path
 
 __all__ = [
     "INFO_FORMATS",
@@ -205,7 +208,10 @@ class _Fields:
     def pose(self, rotation: str, translation: str) -> np.ndarray:
         """4x4 from a (w, x, y, z) quaternion and a translation."""
         matrix = np.eye(4)
-        matrix[:3, :3] = quaternions_to_rotations(self.array(rotation, (4,))[None])[0]
+        try:
+            matrix[:3, :3] = quaternions_to_rotations(self.array(rotation, (4,))[None])[0]
+        except ValueError as error:  # a zero quaternion
+            raise self.error(rotation, str(error)) from None
         matrix[:3, 3] = self.array(translation, (3,))
         return matrix
 
@@ -236,6 +242,8 @@ class _ImageSizes:
         self.sizes: dict[str, tuple[int, int]] = {}
 
     def __call__(self, channel: str, path: str) -> tuple[int, int]:
+        if not is_safe_relative_path(path):  # an error once the frame is complete; nothing is opened outside the root
+            return DEFAULT_IMAGE_SIZE
         if channel not in self.sizes:
             try:
                 with Image.open(self.root / path) as image:  # reads the header, not the pixels
@@ -290,8 +298,12 @@ def _boxes(boxes: np.ndarray, velocity: np.ndarray, lidar2ego: np.ndarray) -> di
 
 def _scene_and_labels(entry: _Fields, token: str, root: Path, prefixes: tuple[str, ...]) -> dict[str, Any]:
     """``scene``, ``scene_token`` and ``occ_path``: FlashOcc's keys, or the defaults of the module doc."""
+    safe_name(token, f"{entry.where}.token", InfoFileError)
     scene_token = entry.text("scene_token") if "scene_token" in entry else ""
     scene = entry.text("scene_name") if "scene_name" in entry else ""
+    for key, name in (("scene_token", scene_token), ("scene_name", scene)):
+        if name != "":
+            safe_name(name, f"{entry.where}.{key}", InfoFileError)
     if "occ_path" in entry:
         folder = _relative(entry.path("occ_path"), prefixes)
         occ_path: str | None = folder if folder.endswith(".npz") else f"{folder}/labels.npz"
@@ -299,6 +311,19 @@ def _scene_and_labels(entry: _Fields, token: str, root: Path, prefixes: tuple[st
         guess = f"gts/{scene}/{token}/labels.npz"
         occ_path = guess if scene and (root / guess).is_file() else None
     return {"scene": scene, "scene_token": scene_token, "occ_path": occ_path}
+
+
+def _check_paths(frame: dict[str, Any], entry: _Fields) -> None:
+    """Every path of the record stays under the root (see the module doc); the message names the entry and the
+    record field (the file's key differs between layouts)."""
+    where = f"{entry.where}: record field"
+    safe_relative_path(frame["lidar_path"], f"{where} lidar_path", InfoFileError)
+    for i, sweep in enumerate(frame["sweeps"]):
+        safe_relative_path(sweep.path, f"{where} sweeps[{i}].path", InfoFileError)
+    for channel, camera in frame["cameras"].items():
+        safe_relative_path(camera.path, f"{where} cameras.{channel}.path", InfoFileError)
+    if frame["occ_path"] is not None:
+        safe_relative_path(frame["occ_path"], f"{where} occ_path", InfoFileError)
 
 
 def _link(frames: list[dict[str, Any]]) -> None:
@@ -557,6 +582,7 @@ def convert_infos(
             frames.append(_bevdet_frame(entry, root, prefixes, sizes))
         else:
             frames.append(_v2_frame(entry, root, prefixes, sizes, classes))
+        _check_paths(frames[-1], entry)
     _link(frames)
     return [FrameRecord(**frame) for frame in frames]
 

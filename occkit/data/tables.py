@@ -101,6 +101,10 @@ SHARED_FIELDS: dict[str, tuple[str, ...]] = {
 }
 
 
+#: Fields of :data:`SHARED_FIELDS` that hold values, not tokens of other records.
+_SHARED_VALUES = frozenset({"fileformat", "width", "height"})
+
+
 class TableError(ValueError):
     """A table is missing, unreadable or inconsistent; the message names the file (and record)."""
 
@@ -135,7 +139,7 @@ class NuScenesTables:
         """
         try:
             return self.tokens[table][token]
-        except KeyError:
+        except (KeyError, TypeError):  # TypeError: an unhashable value (a list) where a token belongs
             where = f"{referrer} refers to" if referrer else "no record with"
             raise TableError(f"{where} {table} token {token!r}, which {self.file(table)} does not have") from None
 
@@ -173,7 +177,7 @@ def _read_table(folder: Path, file: str, name: str, shared: dict) -> list[dict]:
         raise TableError(f"{file}: not valid JSON ({error})") from None
     fields = SHARED_FIELDS.get(name)
     try:
-        records = json.loads(text, object_hook=_sharer(fields, shared) if fields else None)
+        records = json.loads(text, object_hook=_sharer(fields, shared, file) if fields else None)
     except json.JSONDecodeError as error:
         raise TableError(f"{file}: not valid JSON ({error})") from None
     if not isinstance(records, list):
@@ -182,9 +186,11 @@ def _read_table(folder: Path, file: str, name: str, shared: dict) -> list[dict]:
     return records
 
 
-def _sharer(fields: tuple[str, ...], shared: dict) -> Callable[[dict], dict]:
-    """A json ``object_hook`` that replaces the values of ``fields`` by the equal object in ``shared``."""
+def _sharer(fields: tuple[str, ...], shared: dict, file: str) -> Callable[[dict], dict]:
+    """A json ``object_hook`` that replaces the values of ``fields`` by the equal object in ``shared``, and refuses
+    a token field (a reference to another record) that holds no string or integer."""
     share = shared.setdefault
+    tokens = frozenset(field for field in fields if field not in _SHARED_VALUES)
 
     def hook(record: dict) -> dict:
         for field in fields:
@@ -192,6 +198,9 @@ def _sharer(fields: tuple[str, ...], shared: dict) -> Callable[[dict], dict]:
             # Exact types: lists are unhashable, and True == 1 must not turn a bool into an int.
             if value.__class__ is str or value.__class__ is int:
                 record[field] = share(value, value)
+            elif value is not None and field in tokens:
+                shown = repr(value) if len(repr(value)) <= 60 else repr(value)[:56] + " ..."
+                raise TableError(f"{file}: record {record.get('token')!r}.{field}: expected a token, got {shown}")
         return record
 
     return hook
@@ -210,7 +219,11 @@ def _check_fields(records: list, required: tuple[str, ...], file: str) -> None:
 
 
 def _by_token(records: list[dict], file: str) -> dict[str, dict]:
-    tokens = {record["token"]: record for record in records}
+    try:
+        tokens = {record["token"]: record for record in records}
+    except TypeError:  # an unhashable token
+        i = next(i for i, record in enumerate(records) if not _hashable(record["token"]))
+        raise TableError(f"{file}: record {i}: token must be a string, got {records[i]['token']!r:.60}") from None
     if len(tokens) != len(records):
         seen: set[str] = set()
         for i, record in enumerate(records):
@@ -218,3 +231,11 @@ def _by_token(records: list[dict], file: str) -> dict[str, dict]:
                 raise TableError(f"{file}: record {i} repeats token {record['token']!r}")
             seen.add(record["token"])
     return tokens
+
+
+def _hashable(value: object) -> bool:
+    try:
+        hash(value)
+    except TypeError:
+        return False
+    return True

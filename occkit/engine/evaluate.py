@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import io
+import logging
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
@@ -18,6 +19,7 @@ from torch import nn
 
 from occkit.data.collate import collate
 from occkit.data.dataset import OccupancyDataset
+from occkit.data.names import path_under, safe_name
 from occkit.engine import distributed
 from occkit.engine.checkpoint import check_compatible, load_checkpoint
 from occkit.engine.experiment import Experiment, experiment_from_dict
@@ -29,26 +31,61 @@ __all__ = [
     "load_trained",
     "evaluation_dataset",
     "write_prediction",
+    "predict_to_folder",
     "split_loader",
     "dataset_ray_origins",
 ]
 
+log = logging.getLogger(__name__)
+
 
 def split_loader(dataset: OccupancyDataset, batch_size: int, workers: int, context: distributed.Context | None):
-    """Every sample once, in order, this rank's share."""
+    """Every sample once, in order, this rank's share. With ``on_error="skip"`` a batch holds the samples that
+    loaded, possibly none (``len(batch) == 0``): pass over those."""
     rank, world = (context.rank, context.world_size) if context is not None else (0, 1)
     sampler = distributed.EpochSampler(len(dataset), batch_size, rank, world, shuffle=False)
     return torch.utils.data.DataLoader(dataset, batch_size=batch_size, sampler=sampler, num_workers=workers,
                                        collate_fn=collate, generator=torch.Generator())  # fmt: skip
 
 
-def write_prediction(path: Path, semantics: np.ndarray) -> None:
-    """One Occ3D-format prediction file (``semantics``: uint8 ``(200, 200, 16)``), written atomically."""
+def write_prediction(folder: Path, token: str, semantics: np.ndarray) -> Path:
+    """``folder/<token>.npz``, one Occ3D-format prediction file (``semantics``: uint8 ``(200, 200, 16)``), written
+    atomically. The token must be a safe name (:func:`~occkit.data.names.safe_name`), so the file stays in
+    ``folder`` whatever the tables say."""
+    path = path_under(folder, safe_name(token, f"sample token (writing into {folder})") + ".npz", str(folder))
     buffer = io.BytesIO()
     np.savez_compressed(buffer, semantics=semantics.astype(np.uint8))
     temporary = path.with_name(f".{path.name}.tmp")
     temporary.write_bytes(buffer.getvalue())
     temporary.replace(path)
+    return path
+
+
+@torch.no_grad()
+def predict_to_folder(model: nn.Module, dataset: OccupancyDataset, out: Path, batch_size: int = 1, workers: int = 0,
+                      context: distributed.Context | None = None,
+                      progress: Callable[[int], None] | None = None) -> dict[str, int]:  # fmt: skip
+    """Write ``out/<token>.npz`` predictions of every frame of ``dataset`` (this rank's share under torchrun).
+
+    Returns:
+        ``written`` and ``skipped`` (frames that failed to load under ``on_error="skip"``), summed over ranks.
+    """
+    device = next(model.parameters()).device
+    was_training = model.training
+    model.eval()
+    loader = split_loader(dataset, batch_size, workers, context)
+    share, written = len(loader.sampler), 0
+    for index, batch in enumerate(loader):
+        if len(batch) > 0:  # else every frame of the batch failed to load (on_error="skip")
+            semantics = model.predict(batch.to(device)).semantics.cpu().numpy()
+            for token, grid in zip(batch.tokens, semantics, strict=True):
+                write_prediction(out, token, grid)
+            written += len(batch)
+        if progress is not None:
+            progress(min(batch_size, share - index * batch_size))
+    model.train(was_training)
+    written, skipped = (int(n) for n in _all_reduce(np.array([written, share - written])))
+    return {"written": written, "skipped": skipped}
 
 
 def dataset_ray_origins(dataset: OccupancyDataset) -> dict[str, np.ndarray]:
@@ -85,10 +122,11 @@ def evaluate_model(
         dataset: the split, with ``occupancy=True`` and no augmentation.
         predictions: folder to also write ``<token>.npz`` predictions into.
         ray_origins: token -> origins; when given, RayIoU is computed too (no mask, as SparseOcc).
-        progress: called with the number of samples after each batch.
+        progress: called with the number of samples after each batch (skipped ones included).
 
     Returns:
-        ``miou``, ``iou``, ``per_class_iou``, ``frames`` and with origins ``rayiou``, ``rayiou@1/2/4``.
+        ``miou``, ``iou``, ``per_class_iou``, ``frames`` (scored), ``skipped`` (frames that failed to load under
+        ``on_error="skip"``, not scored) and with origins ``rayiou``, ``rayiou@1/2/4``.
     """
     was_training = model.training
     model.eval()
@@ -96,21 +134,28 @@ def evaluate_model(
     metric = OccupancyMetric(mask="camera")
     ray_counts = _frame_counts(rayiou([], [], [])["counts"])  # zeros: a rank may hold no frame at all
     frames = 0
-    for batch in split_loader(dataset, batch_size, workers, context):
-        semantics = model.predict(batch.to(device)).semantics.cpu().numpy()
-        labels = batch.voxel_semantics.numpy()
-        metric.update(labels, semantics, batch.mask_camera.numpy())
-        for i, token in enumerate(batch.tokens):
-            if predictions is not None:
-                write_prediction(predictions / f"{token}.npz", semantics[i])
-            if ray_origins is not None:
-                ray_counts += _frame_counts(rayiou([labels[i]], [semantics[i]], [ray_origins[token]])["counts"])
-        frames += len(batch)
+    loader = split_loader(dataset, batch_size, workers, context)
+    share = len(loader.sampler)
+    for index, batch in enumerate(loader):
+        if len(batch) > 0:  # else every frame of the batch failed to load (on_error="skip")
+            semantics = model.predict(batch.to(device)).semantics.cpu().numpy()
+            labels = batch.voxel_semantics.numpy()
+            metric.update(labels, semantics, batch.mask_camera.numpy())
+            for i, token in enumerate(batch.tokens):
+                if predictions is not None:
+                    write_prediction(predictions, token, semantics[i])
+                if ray_origins is not None:
+                    ray_counts += _frame_counts(rayiou([labels[i]], [semantics[i]], [ray_origins[token]])["counts"])
+            frames += len(batch)
         if progress is not None:
-            progress(len(batch))
+            progress(min(batch_size, share - index * batch_size))
     model.train(was_training)
     metric.confusion = _all_reduce(metric.confusion)
-    result = {**metric.compute(), "frames": int(_all_reduce(np.array([frames]))[0])}
+    frames, skipped = (int(n) for n in _all_reduce(np.array([frames, share - frames])))
+    if skipped:
+        log.warning("%d of %d frames failed to load and were skipped (on_error=skip): not scored", skipped,
+                    frames + skipped)  # fmt: skip
+    result = {**metric.compute(), "frames": frames, "skipped": skipped}
     if ray_origins is not None:
         result.update(_rayiou_summary(_all_reduce(ray_counts)))
     return result

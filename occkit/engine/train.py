@@ -213,6 +213,7 @@ class _Trainer:
 
     def loader(self, skip_batches: int) -> torch.utils.data.DataLoader:
         self.dataset.set_epoch(self.epoch)
+        self.dataset.refill = True  # on_error=skip: a sample that fails is replaced, so every batch stays full
         self.sampler.set_epoch(self.epoch, skip_batches)
         workers = self.experiment.train.workers
         # A private generator: creating the iterator must not draw from the global RNG, or a resumed run would

@@ -22,6 +22,7 @@ from PIL import Image
 
 from occkit.data.dataset import CAMERAS, DatasetConfig, OccupancyDataset
 from occkit.data.index import FrameRecord
+from occkit.data.names import path_under, safe_name
 from occkit.data.transforms import ImageAugConfig, augment_image, sample_image_aug
 from occkit.types import Sample
 from occkit.viz.bev import bev_figure
@@ -128,10 +129,12 @@ def _folder_predictor(folder: Path, tokens: list[str]) -> Predictor:
 
     if not folder.is_dir():
         raise FileNotFoundError(f"prediction folder {folder} does not exist")
-    for token in tokens:
-        if not (folder / f"{token}.npz").is_file():
-            raise FileNotFoundError(f"no prediction for sample {token}: {folder / f'{token}.npz'} not found")
-    return lambda token: read_prediction(folder / f"{token}.npz")
+    files = {token: path_under(folder, safe_name(token, "sample token") + ".npz", f"--pred {folder}")
+             for token in tokens}  # fmt: skip
+    for token, path in files.items():
+        if not path.is_file():
+            raise FileNotFoundError(f"no prediction for sample {token}: {path} not found")
+    return lambda token: read_prediction(files[token])
 
 
 def _checkpoint_predictor(config: VizConfig) -> Predictor:
@@ -198,7 +201,8 @@ def _render_frame(
     cameras = _camera_set(dataset, record, sample) if dataset.config.cameras else None
     images, files = [], {}
     for stem, caption, draw in _views(sample, cameras, pred, pred_name, f"{record.scene} / {record.token}"):
-        path = save_figure(draw(), Path(config.out) / record.token / f"{stem}.png", config.dpi, config.colors)
+        folder = path_under(config.out, safe_name(record.token, "sample token"), f"--out {config.out}")
+        path = save_figure(draw(), folder / f"{stem}.png", config.dpi, config.colors)
         files[stem] = f"{record.token}/{path.name}"
         images.append(PageImage(files[stem], caption))
     entry = {"token": record.token, "scene": record.scene, "files": files}
