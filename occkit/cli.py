@@ -418,6 +418,9 @@ def _run_eval(args: argparse.Namespace) -> int:
             result.update(mask="camera", missing_predictions=0, checkpoint=str(args.ckpt),
                           split=dataset.config.split, root=dataset.config.root)  # fmt: skip
             print(markdown_table(result), end="")
+            if result["skipped"]:
+                print(f"note: {result['skipped']} frame(s) failed to load and were skipped (data.on_error=skip): "
+                      f"the scores are over the {result['frames']} others")
             for path in write_report(result, args.out).values():
                 print(f"wrote {path}")
         distributed.barrier()  # every rank leaves the group together, none while another still uses it
