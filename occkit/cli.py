@@ -229,24 +229,30 @@ def _index_from_info(args: argparse.Namespace) -> int:
 
 # ----------------------------------------------------------------------------------------------------- eval-preds
 def _add_eval_preds(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--gt", type=Path, required=True, help="Occ3D gts/ folder (<scene>/<token>/labels.npz)")
+    parser.add_argument("--gt", type=Path, required=True,
+                        help="ground truth: Occ3D's gts/ folder (<scene>/<token>/labels.npz), or the folder holding "
+                             "SurroundOcc's samples/ (<LiDAR file>.npy)")
     parser.add_argument(
         "--preds", type=Path, required=True, help="folder of <token>.npz predictions (key semantics or pred)"
     )
     parser.add_argument("--out", type=Path, required=True, help="folder for metrics.json, metrics.md and the plot")
+    parser.add_argument("--label-space", choices=("occ3d", "surroundocc"), default="occ3d",
+                        help="the benchmark of ground truth and predictions (default occ3d); surroundocc needs "
+                             "--nuscenes ROOT --version V to pair its files with sample tokens")
     parser.add_argument(
         "--mask",
         choices=("camera", "lidar", "none"),
-        default="camera",
-        help="visibility mask for mIoU/IoU (default camera, the official setting)",
+        default=None,
+        help="visibility mask for mIoU/IoU (default: the benchmark's, camera for Occ3D, none for SurroundOcc)",
     )
     parser.add_argument("--rayiou", action="store_true", help="also compute RayIoU (SparseOcc protocol)")
     parser.add_argument(
         "--ray-origins", type=Path, metavar="FILE.npz", help="RayIoU ray origins: token -> (T, 3) ego metres"
     )
     parser.add_argument(
-        "--nuscenes", type=Path, metavar="ROOT", help="derive RayIoU origins from this dataset's key-frame poses"
-    )
+        "--nuscenes", type=Path, metavar="ROOT",
+        help="the dataset's nuScenes tables: RayIoU origins from its key-frame poses, SurroundOcc file names",
+    )  # fmt: skip
     parser.add_argument("--version", default="v1.0-trainval", help="table folder under --nuscenes")
     parser.add_argument(
         "--allow-missing", action="store_true", help="score frames without a prediction as all free (counted)"
@@ -257,27 +263,47 @@ def _add_eval_preds(parser: argparse.ArgumentParser) -> None:
 def _run_eval_preds(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
+    from occkit.label_space import label_space
     from occkit.metrics.evaluate import evaluate_predictions, find_gt_labels, markdown_table, write_report
 
     input_folder(args.gt, "--gt")
     input_folder(args.preds, "--preds")
     output_folder(args.out, "--out")
+    space = label_space(args.label_space)
+    if args.rayiou and not space.rayiou:
+        raise ValueError(f"--rayiou: RayIoU is not defined for {space.name} labels (only for Occ3D's)")
+    if args.mask is not None:
+        space.check_mask(None if args.mask == "none" else args.mask)
+    records = None
+    if args.nuscenes is not None:
+        from occkit.data.index import build_index
+
+        records = build_index(args.nuscenes, args.version, max_sweeps=0)
+    elif space.name != "occ3d":
+        raise ValueError(f"--label-space {space.name}: its files are named after each frame's LiDAR file; give the "
+                         "dataset's tables with --nuscenes ROOT --version V")  # fmt: skip
     origins = args.ray_origins
     if args.rayiou and origins is None:
-        if args.nuscenes is None:
+        if records is None:
             raise ValueError("--rayiou needs --ray-origins FILE.npz or --nuscenes ROOT --version V for the ray origins")
-        origins = _ray_origins_from_tables(args.nuscenes, args.version)
-    frames = len(find_gt_labels(args.gt))
-    with tqdm(total=frames, unit="frame", desc="eval") as bar:
+        origins = _ray_origins(records)
+    # With the tables, the frames are theirs; else (Occ3D) every <scene>/<token> of the tree.
+    frames = None if records is None else {r.token: (r.scene, r.lidar_path) for r in records}
+    if frames is not None and space.name == "occ3d":  # an Occ3D tree may cover a subset of the tables' frames
+        frames = {token: frame for token, frame in frames.items() if (args.gt / frame[0] / token).is_dir()}
+    count = len(find_gt_labels(args.gt, space, frames))
+    with tqdm(total=count, unit="frame", desc="eval") as bar:
         result = evaluate_predictions(
             args.gt,
             args.preds,
-            mask=args.mask,
+            mask=args.mask or "default",
             ray_origins=origins,
             compute_rayiou=args.rayiou,
             allow_missing=args.allow_missing,
             workers=args.workers,
             progress=bar.update,
+            space=space,
+            frames=frames,
         )
     print(markdown_table(result), end="")
     for path in write_report(result, args.out).values():
@@ -285,12 +311,10 @@ def _run_eval_preds(args: argparse.Namespace) -> int:
     return 0
 
 
-def _ray_origins_from_tables(root: Path, version: str) -> dict:
-    """RayIoU origins of every key frame, from the nuScenes tables of ``root/version``."""
-    from occkit.data.index import build_index
+def _ray_origins(records) -> dict:
+    """RayIoU origins of every key frame of index records (the nuScenes tables' key-frame poses)."""
     from occkit.metrics.origins import PoseRecord, ray_origins
 
-    records = build_index(root, version, max_sweeps=0)
     return ray_origins([PoseRecord(r.token, r.scene, r.lidar2ego, r.ego2global) for r in records])
 
 
@@ -382,7 +406,11 @@ def _add_eval(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--data", type=Path, default=None, help="dataset root (default: the one it was trained on)")
     parser.add_argument("--split", default=None, help="split to score (default: the run's validation split)")
     parser.add_argument("--out", type=Path, required=True, help="folder for metrics.json, metrics.md and plots")
-    parser.add_argument("--no-rayiou", action="store_true", help="skip RayIoU (mIoU and IoU only)")
+    parser.add_argument("--no-rayiou", action="store_true",
+                        help="skip RayIoU (mIoU and IoU only); SurroundOcc labels have no RayIoU anyway")
+    parser.add_argument("--mask", choices=("camera", "lidar", "none"), default=None,
+                        help="visibility mask for mIoU/IoU (default: the label space's, camera for Occ3D, none for "
+                             "SurroundOcc)")
     parser.add_argument("--save-predictions", action="store_true", help="also write <token>.npz predictions")
     parser.add_argument("--batch-size", type=integer(1), default=1)
     parser.add_argument("--workers", type=integer(0), default=2, help="data loading processes")
@@ -408,15 +436,16 @@ def _run_eval(args: argparse.Namespace) -> int:
             if predictions is not None:
                 predictions.mkdir(exist_ok=True)
         distributed.barrier()
-        origins = None if args.no_rayiou else dataset_ray_origins(dataset)
+        origins = None if args.no_rayiou or not dataset.space.rayiou else dataset_ray_origins(dataset)
+        mask = "default" if args.mask is None else None if args.mask == "none" else args.mask
         share = len(range(context.rank, len(dataset), context.world_size))
         with tqdm(total=share, unit="frame", desc="eval", disable=not context.is_main) as bar:
             result = evaluate_model(model, dataset, args.batch_size, args.workers, context, predictions=predictions,
-                                    ray_origins=origins, progress=bar.update)  # fmt: skip
+                                    ray_origins=origins, progress=bar.update, mask=mask)  # fmt: skip
         if context.is_main:
             # The keys of occkit eval-preds' report (every frame has its prediction here).
-            result.update(mask="camera", missing_predictions=0, checkpoint=str(args.ckpt),
-                          split=dataset.config.split, root=dataset.config.root)  # fmt: skip
+            result.update(missing_predictions=0, checkpoint=str(args.ckpt), split=dataset.config.split,
+                          root=dataset.config.root)  # fmt: skip
             print(markdown_table(result), end="")
             if result["skipped"]:
                 print(f"note: {result['skipped']} frame(s) failed to load and were skipped (data.on_error=skip): "

@@ -118,6 +118,28 @@ def _daocc_tiny() -> Any:
     )  # fmt: skip
 
 
+def _daocc_surroundocc_tiny() -> Any:
+    """daocc_tiny on SurroundOcc's labels: the LiDAR-frame +-50 m grid at 0.5 m with 17 classes (0 = empty), a
+    +-50.4 m BEV of 0.6 m cells (168 x 168) so that the grid lies inside it, drop-free CE and Lovasz, no mask."""
+    from occkit.models.heads.occupancy import OccupancyHeadConfig
+
+    cfg = _daocc_tiny()
+    extent = 50.4
+    lidar_range = (-extent, -extent, -5.0, extent, extent, 3.0)
+    return dataclasses.replace(
+        cfg,
+        occ_range=(-50.0, -50.0, -5.0, 50.0, 50.0, 3.0),
+        occ_voxel_size=(0.5, 0.5, 0.5),
+        view=dataclasses.replace(cfg.view, point_cloud_range=lidar_range, grid_size=(168, 168, 4)),
+        lidar=dataclasses.replace(cfg.lidar, point_cloud_range=lidar_range),
+        range_extension=dataclasses.replace(cfg.range_extension, bev_range=(-extent, -extent, extent, extent),
+                                            label_frame="lidar"),
+        occupancy=OccupancyHeadConfig(in_channels=32, hidden_channels=32, num_classes=17, free_index=0,
+                                      use_mask=False, lovasz_weight=1.0),
+        detection=dataclasses.replace(cfg.detection, point_cloud_range=lidar_range),
+    )  # fmt: skip
+
+
 def _flashocc_m0() -> Any:
     """FlashOcc M0: ResNet-50 C4/C5 + FPN at 256 x 704, 44 depth bins, 64 x 200 x 200 BEV, 128-channel C2H head;
     31.95 mIoU, 39.94 M parameters."""
@@ -197,15 +219,17 @@ def _data(family: str, tiny: bool) -> Any:
     from occkit.data.dataset import CAMERAS, DatasetConfig
     from occkit.data.transforms import ImageAugConfig
 
-    sweeps = {"daocc": 9, "daocc_lidar": 9, "flashocc": -1, "da_occ": 0}[family]
+    sweeps = {"daocc": 9, "daocc_lidar": 9, "daocc_surroundocc": 9, "flashocc": -1, "da_occ": 0}[family]
     cameras = () if family == "daocc_lidar" else CAMERAS
+    space = "surroundocc" if family == "daocc_surroundocc" else "occ3d"
     if not tiny:
         return DatasetConfig(cameras=cameras, sweeps=sweeps, boxes=family.startswith("daocc"), augment=True,
-                             depth_downsample=16 if family == "da_occ" else 0)  # fmt: skip
+                             depth_downsample=16 if family == "da_occ" else 0, label_space=space)  # fmt: skip
     return DatasetConfig(
-        root="data/demo", cameras=CAMERAS, sweeps=min(sweeps, 4), boxes=family.startswith("daocc"), augment=True,
+        root="data/demo", cameras=CAMERAS,
+        sweeps=min(sweeps, 4), boxes=family.startswith("daocc"), augment=True,
         image_aug=ImageAugConfig(final_size=(128, 352), rotate_deg=(0.0, 0.0)),
-        depth_downsample=16 if family == "da_occ" else 0,
+        depth_downsample=16 if family == "da_occ" else 0, label_space=space,
     )  # fmt: skip
 
 
@@ -228,7 +252,8 @@ _ZOO: dict[str, tuple[str, Callable[[], Any], str]] = {
     # name: (architecture, model factory, data/training family)
     "daocc": ("daocc", _daocc, "daocc"),
     "daocc_lidar": ("daocc", _daocc_lidar, "daocc_lidar"),
-    "daocc_surroundocc": ("daocc", _daocc_surroundocc, "daocc"),
+    "daocc_surroundocc": ("daocc", _daocc_surroundocc, "daocc_surroundocc"),
+    "daocc_surroundocc_tiny": ("daocc", _daocc_surroundocc_tiny, "daocc_surroundocc"),
     "daocc_tiny": ("daocc", _daocc_tiny, "daocc"),
     "flashocc_m0": ("flashocc", _flashocc_m0, "flashocc"),
     "flashocc_m1": ("flashocc", _flashocc_m1, "flashocc"),

@@ -161,7 +161,7 @@ def test_eval_writes_no_prediction_outside_its_folder(data, run, tmp_path):
     object.__setattr__(dataset.records[0], "token", "../../escape_tok")  # as if made around the index's checks
     predictions = tmp_path / "deep" / "preds"
     predictions.mkdir(parents=True)
-    with pytest.raises(ValueError, match=r"sample token \(writing into .*preds\): '\.\./\.\./escape_tok' is not a safe name"):
+    with pytest.raises(ValueError, match=r"'\.\./\.\./escape_tok' is not a safe name"):
         evaluate_model(model, dataset, batch_size=1, predictions=predictions)
     assert not list(tmp_path.rglob("escape_tok*"))
 

@@ -24,7 +24,7 @@ from torch import Tensor
 
 from occkit.classes import DETECTION_CLASSES
 from occkit.data.index import FrameRecord, build_index, load_index, read_index_header, save_index, tables_key
-from occkit.data.labels import LabelError, read_occ3d_labels
+from occkit.data.labels import LabelError, label_file, read_labels
 from occkit.data.lidar_maps import depth_map, height_map
 from occkit.data.splits import split_scenes
 from occkit.data.transforms import (
@@ -43,7 +43,8 @@ from occkit.data.transforms import (
     sanitize_points,
 )
 from occkit.errors import InputError
-from occkit.geometry.grid import OCC3D_GRID
+from occkit.geometry.se3 import invert_transform
+from occkit.label_space import label_space
 from occkit.types import Sample
 
 __all__ = ["DatasetConfig", "OccupancyDataset", "SampleError"]
@@ -77,7 +78,12 @@ class DatasetConfig:
     sweeps: int = 9
     """Previous LiDAR sweeps added to the key frame (DAOcc: 9, i.e. 10 sweeps); -1 for no LiDAR at all."""
     occupancy: bool = True
-    """Load the Occ3D labels and masks."""
+    """Load the occupancy labels (and, for Occ3D, the visibility masks)."""
+    label_space: str = "occ3d"
+    """Which benchmark's ground truth: ``occ3d`` or ``surroundocc`` (grid, frame, classes, files; see
+    :mod:`occkit.label_space`). It must be the one the model's occupancy head predicts."""
+    label_root: str | None = None
+    """Folder of the label files; None: the label space's folder under ``root`` (``gts``, ``surroundocc``)."""
     boxes: bool = True
     """Load the 3D boxes of the detection classes."""
     augment: bool = False
@@ -157,6 +163,7 @@ class OccupancyDataset(torch.utils.data.Dataset):
 
     def __init__(self, config: DatasetConfig) -> None:
         self.config = config
+        self.space = label_space(config.label_space)
         self.root = Path(config.root)
         records = self._load_records()
         if config.split != "all":
@@ -235,8 +242,13 @@ class OccupancyDataset(torch.utils.data.Dataset):
     def _load(self, record: FrameRecord, rng: np.random.Generator) -> Sample:
         config = self.config
         lidar2ego = _matrix(record.lidar2ego)
-        occ_aug = sample_bev_aug(config.bev_aug, rng, config.augment)
-        bev_aug = lidar_frame_aug(occ_aug, lidar2ego.double())
+        # The BEV augmentation is drawn in the labels' frame, where a flip is an exact flip of the label array;
+        # occ_aug is its ego-frame form (the camera geometry's), bev_aug its LiDAR-frame form (points, boxes).
+        label_aug = sample_bev_aug(config.bev_aug, rng, config.augment)
+        if self.space.frame == "ego":
+            occ_aug, bev_aug = label_aug, lidar_frame_aug(label_aug, lidar2ego.double())
+        else:
+            occ_aug, bev_aug = lidar_frame_aug(label_aug, invert_transform(lidar2ego.double())), label_aug
         sample = Sample(
             token=record.token,
             scene=record.scene,
@@ -253,7 +265,7 @@ class OccupancyDataset(torch.utils.data.Dataset):
         if config.boxes:
             self._load_boxes(record, sample)
         if config.occupancy:
-            self._load_occupancy(record, sample, occ_aug)
+            self._load_occupancy(record, sample, label_aug)
         if config.depth_downsample and config.cameras and key_points is not None:
             ego_points = key_points[:, :3] @ lidar2ego[:3, :3].T + lidar2ego[:3, 3]
             size = sample.images.shape[-2:]
@@ -329,18 +341,26 @@ class OccupancyDataset(torch.utils.data.Dataset):
             [DETECTION_CLASSES.index(record.box_detection_names[i]) for i in keep], dtype=torch.int64
         )
 
-    def _load_occupancy(self, record: FrameRecord, sample: Sample, occ_aug: Tensor) -> None:
-        if record.occ_path is None:
-            raise SampleError(f"sample {record.token}: no Occ3D labels under {self.root / 'gts' / record.scene}")
+    def label_path(self, record: FrameRecord) -> Path:
+        """The ground-truth file of a key frame in this dataset's label space."""
+        folder = Path(self.config.label_root) if self.config.label_root is not None else self.root / \
+            self.space.label_folder  # fmt: skip
+        return label_file(self.space, folder, record.scene, record.token, record.lidar_path)
+
+    def _load_occupancy(self, record: FrameRecord, sample: Sample, label_aug: Tensor) -> None:
+        """Labels (and masks) moved with ``label_aug``, the BEV augmentation in the labels' frame."""
+        space = self.space
         try:
-            labels = read_occ3d_labels(self.root / record.occ_path, record.token)
+            labels = read_labels(space, self.label_path(record), record.token)
         except LabelError as error:  # one error type for every file of a sample (its message names both)
             raise SampleError(str(error)) from error
         sample.voxel_semantics = torch.from_numpy(
-            augment_occupancy(labels.semantics, occ_aug, OCC3D_GRID, 255, empty=17)
+            augment_occupancy(labels.semantics, label_aug, space.grid, space.ignore_index, empty=space.free_index)
         )
-        sample.mask_camera = torch.from_numpy(augment_occupancy(labels.mask_camera, occ_aug, OCC3D_GRID, False))
-        sample.mask_lidar = torch.from_numpy(augment_occupancy(labels.mask_lidar, occ_aug, OCC3D_GRID, False))
+        for name in ("mask_camera", "mask_lidar"):
+            mask = getattr(labels, name)
+            if mask is not None:
+                setattr(sample, name, torch.from_numpy(augment_occupancy(mask, label_aug, space.grid, False)))
 
 
 def _slug(path: Path) -> str:

@@ -2,6 +2,8 @@
 
 Both validate what they read and name the file and sample in every error, because label files are where
 silent mistakes (a wrong shape, a float mask, a SurroundOcc file read as Occ3D) cost a training run.
+:func:`label_file` and :func:`read_labels` choose the file and the reader from a
+:class:`~occkit.label_space.LabelSpace`.
 """
 
 from __future__ import annotations
@@ -12,10 +14,13 @@ from pathlib import Path
 
 import numpy as np
 
-from occkit.classes import IGNORE_INDEX
+from occkit.classes import IGNORE_INDEX, OCC3D, SURROUNDOCC
+from occkit.data.names import path_under, safe_name
 from occkit.geometry.grid import OCC3D_GRID, SURROUNDOCC_GRID, VoxelGrid
+from occkit.label_space import LabelSpace
 
-__all__ = ["LabelError", "OccupancyLabels", "read_occ3d_labels", "read_surroundocc_labels"]
+__all__ = ["LabelError", "OccupancyLabels", "read_occ3d_labels", "read_surroundocc_labels", "label_file",
+           "read_labels"]
 
 
 class LabelError(ValueError):
@@ -68,10 +73,11 @@ def read_occ3d_labels(path: str | Path, token: str | None = None, grid: VoxelGri
         if arrays[key].dtype == np.uint8 and arrays[key].max(initial=0) > 1:
             raise LabelError(f"{where}: {key} holds values {sorted(np.unique(arrays[key]).tolist())[:8]}, not 0/1")
     semantics = arrays["semantics"].astype(np.uint8, copy=False)
-    bad = (semantics > 17) & (semantics != IGNORE_INDEX)
+    last = OCC3D.num_classes - 1
+    bad = (semantics > last) & (semantics != IGNORE_INDEX)
     if bad.any():
         raise LabelError(
-            f"{where}: semantics holds class ids {sorted(np.unique(semantics[bad]).tolist())} beyond 0..17"
+            f"{where}: semantics holds class ids {sorted(np.unique(semantics[bad]).tolist())} beyond 0..{last}"
         )
     return OccupancyLabels(semantics, arrays["mask_camera"].astype(bool), arrays["mask_lidar"].astype(bool))
 
@@ -97,10 +103,36 @@ def read_surroundocc_labels(
     outside = ((index < 0) | (index >= np.array(grid.shape))).any(axis=1)
     if outside.any():
         raise LabelError(f"{where}: {int(outside.sum())} rows index outside the {grid.shape} grid")
-    if ((labels < 0) | (labels > 16)).any():
+    last = SURROUNDOCC.num_classes - 1
+    if ((labels < 0) | (labels > last)).any():
         raise LabelError(
-            f"{where}: labels must be 0..16, got {np.unique(labels[(labels < 0) | (labels > 16)]).tolist()}"
+            f"{where}: labels must be 0..{last}, got {np.unique(labels[(labels < 0) | (labels > last)]).tolist()}"
         )
     semantics = np.zeros(grid.shape, dtype=np.uint8)
     semantics[index[:, 0], index[:, 1], index[:, 2]] = np.where(labels == 0, IGNORE_INDEX, labels).astype(np.uint8)
     return OccupancyLabels(semantics)
+
+
+def label_file(space: LabelSpace, folder: str | Path, scene: str, token: str, lidar_path: str) -> Path:
+    """The ground-truth file of a key frame in ``folder`` (the dataset root's ``space.label_folder``, or a folder of
+    its own), as the benchmark names it:
+
+    * Occ3D: ``<folder>/<scene>/<token>/labels.npz`` (the ``gts/`` tree);
+    * SurroundOcc: ``<folder>/samples/<LiDAR file name>.npy``, e.g. ``samples/n008-...__LIDAR_TOP__...pcd.bin.npy``
+      (its ``tools/generate_occupancy_nuscenes`` names each file after the key frame's LiDAR file).
+
+    Names are checked (:func:`~occkit.data.names.safe_name`), so the path stays in ``folder``.
+    """
+    if space.name == "surroundocc":
+        name = safe_name(Path(lidar_path).name, f"sample {token}: LiDAR file name")
+        return path_under(folder, f"samples/{name}.npy", str(folder))
+    where = f"sample {token}"
+    return path_under(folder, f"{safe_name(scene, where + ' scene')}/{safe_name(token, where)}/labels.npz",
+                      str(folder))  # fmt: skip
+
+
+def read_labels(space: LabelSpace, path: str | Path, token: str | None = None) -> OccupancyLabels:
+    """Read one ground-truth file of ``space`` with its reader (``semantics`` in the space's class ids)."""
+    if space.name == "surroundocc":
+        return read_surroundocc_labels(path, token, space.grid)
+    return read_occ3d_labels(path, token, space.grid)

@@ -114,24 +114,31 @@ def evaluate_model(
     predictions: Path | None = None,
     ray_origins: dict[str, np.ndarray] | None = None,
     progress: Callable[[int], None] | None = None,
+    mask: str | None = "default",
 ) -> dict[str, Any]:
-    """Score a model on a labelled dataset split (camera mask, the official Occ3D setting).
+    """Score a model on a labelled dataset split with the protocol of the dataset's label space (Occ3D: the camera
+    mask, the official setting; SurroundOcc: every voxel).
 
     Args:
         model: a zoo model; put in eval mode here.
         dataset: the split, with ``occupancy=True`` and no augmentation.
         predictions: folder to also write ``<token>.npz`` predictions into.
-        ray_origins: token -> origins; when given, RayIoU is computed too (no mask, as SparseOcc).
+        ray_origins: token -> origins; when given, RayIoU is computed too (no mask, as SparseOcc); Occ3D only.
         progress: called with the number of samples after each batch (skipped ones included).
+        mask: ``camera``, ``lidar``, None (every voxel), or ``default``: the label space's.
 
     Returns:
-        ``miou``, ``iou``, ``per_class_iou``, ``frames`` (scored), ``skipped`` (frames that failed to load under
-        ``on_error="skip"``, not scored) and with origins ``rayiou``, ``rayiou@1/2/4``.
+        ``miou``, ``iou``, ``per_class_iou``, ``label_space``, ``mask``, ``frames`` (scored), ``skipped`` (frames that
+        failed to load under ``on_error="skip"``, not scored) and with origins ``rayiou``, ``rayiou@1/2/4``.
     """
+    space = dataset.space
+    if ray_origins is not None and not space.rayiou:
+        raise ValueError(f"RayIoU is not defined for {space.name} labels (only for Occ3D's); leave it out")
+    mask = space.check_mask(space.default_mask if mask == "default" else mask)
     was_training = model.training
     model.eval()
     device = next(model.parameters()).device
-    metric = OccupancyMetric(mask="camera")
+    metric = OccupancyMetric.for_space(space, mask)
     ray_counts = _frame_counts(rayiou([], [], [])["counts"])  # zeros: a rank may hold no frame at all
     frames = 0
     loader = split_loader(dataset, batch_size, workers, context)
@@ -140,7 +147,9 @@ def evaluate_model(
         if len(batch) > 0:  # else every frame of the batch failed to load (on_error="skip")
             semantics = model.predict(batch.to(device)).semantics.cpu().numpy()
             labels = batch.voxel_semantics.numpy()
-            metric.update(labels, semantics, batch.mask_camera.numpy())
+            masks = {name: None if value is None else value.numpy()
+                     for name, value in (("mask_camera", batch.mask_camera), ("mask_lidar", batch.mask_lidar))}
+            metric.update(labels, semantics, **masks)
             for i, token in enumerate(batch.tokens):
                 if predictions is not None:
                     write_prediction(predictions, token, semantics[i])
@@ -155,7 +164,7 @@ def evaluate_model(
     if skipped:
         log.warning("%d of %d frames failed to load and were skipped (on_error=skip): not scored", skipped,
                     frames + skipped)  # fmt: skip
-    result = {**metric.compute(), "frames": frames, "skipped": skipped}
+    result = {**metric.compute(), "label_space": space.name, "mask": mask, "frames": frames, "skipped": skipped}
     if ray_origins is not None:
         result.update(_rayiou_summary(_all_reduce(ray_counts)))
     return result

@@ -21,8 +21,11 @@ import yaml
 
 from occkit.config import ConfigError, dump_yaml, from_dict, override_dict, to_dict
 from occkit.data.dataset import DatasetConfig
+from occkit.geometry.grid import VoxelGrid
+from occkit.label_space import LabelSpace, label_space
 
-__all__ = ["TrainConfig", "Experiment", "load_experiment", "experiment_from_dict", "experiment_yaml", "replace_train"]
+__all__ = ["TrainConfig", "Experiment", "check_label_space", "load_experiment", "experiment_from_dict",
+           "experiment_yaml", "replace_train"]
 
 
 @dataclass(frozen=True)
@@ -118,10 +121,38 @@ def experiment_from_dict(data: Any, where: str = "experiment", overrides: Sequen
         train=from_dict(TrainConfig, data.get("train") or {}, f"{where}: train"),
     )
     if not overrides:
+        check_label_space(parsed.model, parsed.data.label_space, where)
         return parsed
     if any(o.split("=", 1)[0].strip() == "architecture" for o in overrides):
         raise ConfigError("the architecture cannot be overridden with --set: use another config file")
     return experiment_from_dict(override_dict(parsed.to_dict(), overrides), f"{where} (after --set)")
+
+
+def check_label_space(model: Any, name: str, where: str = "experiment") -> LabelSpace:
+    """The label space ``name`` (``data.label_space``), checked against what the model predicts: its occupancy
+    head's classes and free / empty id, the frame its range extension places the grid in, and whether its loss needs
+    a visibility mask the labels carry. A model and labels of different label spaces are an error naming both."""
+    try:
+        space = label_space(name)
+    except ValueError as error:
+        raise ConfigError(f"{where}: data.label_space: {error}") from None
+    head = getattr(model, "occupancy", None)
+    if head is not None and (head.num_classes, head.free_index) != (space.num_classes, space.free_index):
+        raise ConfigError(f"{where}: the model predicts {head.num_classes} classes with free / empty id "
+                          f"{head.free_index}, but data.label_space {space.name} has {space.num_classes} with "
+                          f"{space.free_index}: a model of one label space cannot train on or score another")
+    if head is not None and head.use_mask and "camera" not in space.masks:
+        raise ConfigError(f"{where}: model.occupancy.use_mask needs camera visibility masks, which "
+                          f"{space.name} labels do not have")  # fmt: skip
+    if hasattr(model, "occ_range") and hasattr(model, "occ_voxel_size"):
+        grid = VoxelGrid(model.occ_range, model.occ_voxel_size)
+        if grid != space.grid:
+            raise ConfigError(f"{where}: the model predicts on {grid!r} but {space.name} labels are on {space.grid!r}")
+    extension = getattr(model, "range_extension", None)
+    if extension is not None and extension.label_frame != space.frame:
+        raise ConfigError(f"{where}: model.range_extension.label_frame is {extension.label_frame} but "
+                          f"{space.name} labels live in the {space.frame} frame")  # fmt: skip
+    return space
 
 
 def load_experiment(path: str | Path, overrides: Sequence[str] = ()) -> Experiment:

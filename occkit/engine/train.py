@@ -1,9 +1,11 @@
 """The training loop: AdamW, warm-up + cosine schedule, clipping, accumulation, AMP, EMA, validation, resume.
 
 ``train(experiment, out)`` runs one experiment into a run folder (``occkit train`` is a thin wrapper). Single-process
-CPU runs are deterministic: a run killed at any moment and resumed with ``resume="auto"`` ends with the same weights
-as one never interrupted, because a checkpoint holds the model, optimizer, schedule, EMA, every random generator and
-the data position, and the data order and augmentations are pure functions of (seed, epoch, index). Under torchrun
+CPU runs are bitwise deterministic at a fixed thread count (any count, but the same one: runs with other counts differ
+in the last bits): a run killed at any moment and resumed with ``resume="auto"`` ends with the same weights as one
+never interrupted, because a checkpoint holds the model, optimizer, schedule, EMA, every random generator and the data
+position, the data order and augmentations are pure functions of (seed, epoch, index), and the models sum gradients
+in a fixed order (``occkit.models.indexing``). CUDA runs are not bitwise deterministic. Under torchrun
 every rank holds one and the same model at every step (BatchNorm running statistics are rank 0's), so the sharded
 validation scores exactly the weights that are saved.
 """
@@ -37,7 +39,7 @@ from occkit.engine.checkpoint import (
     set_rng_state,
 )
 from occkit.engine.evaluate import evaluate_model
-from occkit.engine.experiment import Experiment, experiment_yaml
+from occkit.engine.experiment import Experiment, check_label_space, experiment_yaml
 from occkit.engine.run_log import RunLog, plot_losses, plot_per_class
 from occkit.types import Batch
 
@@ -107,6 +109,7 @@ class _Trainer:
         from occkit import zoo
 
         self.experiment, self.out, self.context = experiment, out, context
+        check_label_space(experiment.model, experiment.data.label_space)  # the model predicts what the data holds
         cfg = experiment.train
         # Every generator a checkpoint saves starts from the seed: numpy's and Python's global ones are otherwise
         # seeded from the OS, so a draw from them (a user's augmentation or model) would differ from run to run.

@@ -22,6 +22,7 @@ from numba import njit
 
 from occkit.classes import IGNORE_INDEX, OCC3D
 from occkit.geometry.grid import OCC3D_GRID, VoxelGrid
+from occkit.label_space import LabelSpace
 
 __all__ = [
     "confusion_matrix",
@@ -349,6 +350,13 @@ class OccupancyMetric:
         self.mask = mask
         self.ignore_index = ignore_index
         self.confusion = np.zeros((num_classes, num_classes), np.int64)
+
+    @classmethod
+    def for_space(cls, space: LabelSpace, mask: str | None = "default") -> OccupancyMetric:
+        """The metric of a label space's protocol: its classes and free / empty id, under ``mask`` (``default``:
+        the benchmark's own, the camera mask for Occ3D and every voxel for SurroundOcc)."""
+        mask = space.check_mask(space.default_mask if mask == "default" else mask)
+        return cls(space.num_classes, space.free_index, space.taxonomy.classes, mask, space.ignore_index)
 
     def reset(self) -> None:
         """Zero the accumulated matrix."""

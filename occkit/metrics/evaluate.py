@@ -1,8 +1,10 @@
-"""Score a folder of Occ3D-nuScenes predictions against a ``gts/`` tree: mIoU, IoU and optionally RayIoU.
+"""Score a folder of predictions against a ground-truth tree: mIoU, IoU and, for Occ3D, RayIoU.
 
-Ground truth is the Occ3D layout ``gts/<scene>/<token>/labels.npz``; predictions are one ``<token>.npz`` per frame
-holding ``semantics`` (Occ3D challenge submissions) or ``pred`` (SparseOcc), uint8 ``(200, 200, 16)`` class ids
-0..17. Frames are read in a thread pool; each worker reduces its frame to a confusion matrix and, for RayIoU, to
+Ground truth is the label space's layout (:mod:`occkit.label_space`): Occ3D's ``gts/<scene>/<token>/labels.npz``, or
+SurroundOcc's ``samples/<LiDAR file>.npy`` (named after the LiDAR file, so the nuScenes tables are needed to pair
+them with sample tokens). Predictions are one ``<token>.npz`` per frame holding ``semantics`` (Occ3D challenge
+submissions, ``occkit predict``) or ``pred`` (SparseOcc), uint8 class ids on the label space's grid. Frames are read
+in a thread pool; each worker reduces its frame to a confusion matrix and, for RayIoU, to
 ray counts, so memory stays flat however many frames there are. The totals agree with the official ``Metric_mIoU``
 and SparseOcc's ``main_rayiou`` because both metrics are sums of per-frame counts.
 
@@ -20,8 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
-from occkit.classes import OCC3D
-from occkit.data.labels import read_occ3d_labels
+from occkit.data.labels import label_file, read_labels
+from occkit.label_space import OCC3D_SPACE, LabelSpace, label_space
 from occkit.metrics.confusion import OccupancyMetric
 from occkit.metrics.rayiou import RAYIOU_THRESHOLDS, rayiou, rayiou_from_counts
 
@@ -38,8 +40,6 @@ __all__ = [
 #: Keys a prediction file may store its grid under, in the order they are looked up.
 PRED_KEYS: tuple[str, ...] = ("semantics", "pred")
 
-_SHAPE = (200, 200, 16)
-_FREE = OCC3D.empty_index
 _MASKS = {"camera": "camera", "lidar": "lidar", "none": None, None: None}
 # How many missing tokens an error message lists before it only gives the count.
 _LIST_AT_MOST = 10
@@ -69,16 +69,34 @@ def _load_npz(path: Path, what: str) -> dict[str, np.ndarray]:
         raise ValueError(f"{path}: cannot read {what} ({error})") from error
 
 
-def find_gt_labels(gt_root: str | Path) -> dict[str, Path]:
-    """Map each token of an Occ3D ``gts/`` tree to its ``labels.npz``, sorted by token.
+def find_gt_labels(gt_root: str | Path, space: LabelSpace | str = OCC3D_SPACE,
+                   frames: Mapping[str, tuple[str, str]] | None = None) -> dict[str, Path]:  # fmt: skip
+    """Map each token to its ground-truth file, sorted by token.
+
+    Args:
+        gt_root: Occ3D's ``gts/`` folder, or the folder holding SurroundOcc's ``samples/``.
+        space: the label space of the files.
+        frames: token -> (scene, LiDAR file) of the dataset's key frames, from its tables; required for SurroundOcc
+            (its files are named after the LiDAR file), and for Occ3D it limits the tree to those frames.
 
     Raises:
         FileNotFoundError: ``gt_root`` is not a folder.
-        ValueError: the tree holds no ``<scene>/<token>/labels.npz``, or one token appears in two scenes.
+        ValueError: the tree holds no ground truth, a frame's file is missing, or one token appears in two scenes.
     """
+    space = label_space(space)
     gt_root = Path(gt_root)
     if not gt_root.is_dir():
         raise FileNotFoundError(f"ground-truth folder not found: {gt_root}")
+    if frames is not None:
+        paths = {token: label_file(space, gt_root, scene, token, lidar) for token, (scene, lidar) in frames.items()}
+        missing = [token for token, path in paths.items() if not path.is_file()]
+        if missing:
+            raise ValueError(f"{gt_root}: no {space.name} ground truth for {len(missing)} of {len(paths)} frames: "
+                             f"{_token_list(missing)} (e.g. {paths[missing[0]]})")  # fmt: skip
+        return dict(sorted(paths.items()))
+    if space.name != "occ3d":
+        raise ValueError(f"{space.name} ground truth is named after each frame's LiDAR file: give the dataset's "
+                         "tables (--nuscenes ROOT --version V) to pair it with sample tokens")  # fmt: skip
     found: dict[str, Path] = {}
     for path in sorted(gt_root.glob("*/*/labels.npz")):
         token = path.parent.name
@@ -90,26 +108,30 @@ def find_gt_labels(gt_root: str | Path) -> dict[str, Path]:
     return dict(sorted(found.items()))
 
 
-def read_prediction(path: str | Path) -> np.ndarray:
-    """Read one prediction file: ``semantics`` or ``pred``, integer ``(200, 200, 16)`` with ids 0..17, as uint8.
+def read_prediction(path: str | Path, space: LabelSpace | str = OCC3D_SPACE) -> np.ndarray:
+    """Read one prediction file: ``semantics`` or ``pred``, integer class ids of ``space`` on its grid (Occ3D:
+    ``(200, 200, 16)``, ids 0..17), as uint8.
 
     Raises:
-        ValueError: unreadable file, no known key, wrong shape, non-integer dtype or ids outside 0..17; the message
-            names the file.
+        ValueError: unreadable file, no known key, wrong shape, non-integer dtype or ids outside the space's classes;
+            the message names the file.
     """
+    space = label_space(space)
+    shape, last = space.grid.shape, space.num_classes - 1
     path = Path(path)
     arrays = _load_npz(path, "prediction")
     key = next((k for k in PRED_KEYS if k in arrays), None)
     if key is None:
         raise ValueError(f"{path}: has none of the keys {', '.join(PRED_KEYS)} (keys: {', '.join(arrays) or 'none'})")
     grid = arrays[key]
-    if grid.shape != _SHAPE:
-        raise ValueError(f"{path}: {key} has shape {grid.shape} but expected {_SHAPE}")
+    if grid.shape != shape:
+        raise ValueError(f"{path}: {key} has shape {grid.shape} but {space.name} predictions have {shape}")
     if not np.issubdtype(grid.dtype, np.integer):
         raise ValueError(f"{path}: {key} has dtype {grid.dtype} but expected uint8 class ids")
-    bad = (grid < 0) | (grid > _FREE)
+    bad = (grid < 0) | (grid > last)
     if bad.any():
-        raise ValueError(f"{path}: {key} holds class ids {np.unique(grid[bad])[:16].tolist()} outside 0..{_FREE}")
+        raise ValueError(f"{path}: {key} holds class ids {np.unique(grid[bad])[:16].tolist()} outside 0..{last} "
+                         f"({space.name})")  # fmt: skip
     return grid.astype(np.uint8, copy=False)
 
 
@@ -137,13 +159,15 @@ def read_ray_origins(path: str | Path, tokens: list[str]) -> dict[str, np.ndarra
 
 
 def _score_frame(
-    token: str, gt_path: Path, pred_path: Path | None, mask: str | None, origins: np.ndarray | None
+    space: LabelSpace, token: str, gt_path: Path, pred_path: Path | None, mask: str | None,
+    origins: np.ndarray | None,
 ) -> tuple[np.ndarray, dict | None]:
     """Confusion matrix of one frame and, when ``origins`` is given, its RayIoU counts."""
-    labels = read_occ3d_labels(gt_path, token)
+    labels = read_labels(space, gt_path, token)
     # A frame without a prediction (allowed by the caller) is scored as if everything were predicted free.
-    pred = np.full(_SHAPE, _FREE, np.uint8) if pred_path is None else read_prediction(pred_path)
-    metric = OccupancyMetric(mask=mask)
+    pred = (np.full(space.grid.shape, space.free_index, np.uint8) if pred_path is None
+            else read_prediction(pred_path, space))  # fmt: skip
+    metric = OccupancyMetric.for_space(space, mask)
     metric.update(labels.semantics, pred, labels.mask_camera, labels.mask_lidar)
     if origins is None:
         return metric.confusion, None
@@ -171,40 +195,51 @@ def _pair_predictions(gt_paths: Mapping[str, Path], pred_dir: Path, allow_missin
 def evaluate_predictions(
     gt_root: str | Path,
     pred_dir: str | Path,
-    mask: str | None = "camera",
+    mask: str | None = "default",
     ray_origins: str | Path | Mapping[str, np.ndarray] | None = None,
     compute_rayiou: bool = False,
     allow_missing: bool = False,
     workers: int = 4,
     progress: Callable[[int], None] | None = None,
+    space: LabelSpace | str = OCC3D_SPACE,
+    frames: Mapping[str, tuple[str, str]] | None = None,
 ) -> dict:
-    """Score every frame of an Occ3D ``gts/`` tree against ``<token>.npz`` predictions.
+    """Score every ground-truth frame against ``<token>.npz`` predictions with the label space's protocol.
 
     Args:
-        gt_root: the ``gts/`` folder (``<scene>/<token>/labels.npz``).
+        gt_root: Occ3D's ``gts/`` folder (``<scene>/<token>/labels.npz``), or the folder holding SurroundOcc's
+            ``samples/``.
         pred_dir: folder of ``<token>.npz`` files with key ``semantics`` or ``pred``.
-        mask: visibility mask applied to mIoU/IoU: ``"camera"`` (the official setting), ``"lidar"``, ``"none"``/None.
+        mask: visibility mask applied to mIoU/IoU: ``"camera"`` (Occ3D's official setting), ``"lidar"``,
+            ``"none"``/None, or ``"default"``: the label space's (SurroundOcc has none).
         ray_origins: npz path or mapping token -> ``(T, 3)`` ray origins; required when ``compute_rayiou``.
-        compute_rayiou: also compute SparseOcc's RayIoU (masks are not used by it).
+        compute_rayiou: also compute SparseOcc's RayIoU (masks are not used by it); Occ3D only.
         allow_missing: score a frame without prediction as all free instead of raising.
         workers: threads reading and scoring frames.
         progress: called with 1 after each frame.
+        space: the label space of ground truth and predictions.
+        frames: token -> (scene, LiDAR file) of the key frames (see :func:`find_gt_labels`).
 
     Returns:
-        ``miou``, ``iou``, ``per_class_iou`` {class: float or None}, ``mask``, ``frames``, ``missing_predictions``
-        and with RayIoU ``rayiou``, ``rayiou@1``, ``rayiou@2``, ``rayiou@4``; fractions in [0, 1], NaN as None.
+        ``miou``, ``iou``, ``per_class_iou`` {class: float or None}, ``label_space``, ``mask``, ``frames``,
+        ``missing_predictions`` and with RayIoU ``rayiou``, ``rayiou@1``, ``rayiou@2``, ``rayiou@4``; fractions in
+        [0, 1], NaN as None.
 
     Raises:
         FileNotFoundError: a folder or the origins file does not exist.
         ValueError: bad arguments, missing predictions or origins, or a file with wrong content (named).
     """
-    if mask not in _MASKS:
+    space = label_space(space)
+    if mask not in (*_MASKS, "default"):
         raise ValueError(f"mask must be camera, lidar or none, got {mask!r}")
+    mode = space.check_mask(space.default_mask if mask == "default" else _MASKS[mask])
     if workers < 1:
         raise ValueError(f"workers must be at least 1, got {workers}")
+    if compute_rayiou and not space.rayiou:
+        raise ValueError(f"RayIoU is not defined for {space.name} labels (only for Occ3D's): leave out --rayiou")
     if compute_rayiou and ray_origins is None:
         raise ValueError("RayIoU needs ray origins (--ray-origins FILE.npz mapping token -> (T, 3) origins)")
-    gt_paths = find_gt_labels(gt_root)
+    gt_paths = find_gt_labels(gt_root, space, frames)
     tokens = list(gt_paths)
     pred_paths = _pair_predictions(gt_paths, Path(pred_dir), allow_missing)
     origins: Mapping[str, np.ndarray] | None = None
@@ -214,14 +249,14 @@ def evaluate_predictions(
         if missing:
             raise ValueError(f"no ray origins for {len(missing)} of {len(tokens)} frames: {_token_list(missing)}")
 
-    mode = _MASKS[mask]
-    total = OccupancyMetric(mask=mode)
+    total = OccupancyMetric.for_space(space, mode)
     ray_gt = ray_pred = ray_tp = 0
     with ThreadPoolExecutor(max_workers=workers) as pool:
         futures = [
-            pool.submit(_score_frame, t, gt_paths[t], pred_paths[t], mode, None if origins is None else origins[t])
+            pool.submit(_score_frame, space, t, gt_paths[t], pred_paths[t], mode,
+                        None if origins is None else origins[t])
             for t in tokens
-        ]
+        ]  # fmt: skip
         try:
             for future in as_completed(futures):
                 confusion, counts = future.result()
@@ -243,6 +278,7 @@ def evaluate_predictions(
         "miou": _finite_or_none(scores["miou"]),
         "iou": _finite_or_none(scores["iou"]),
         "per_class_iou": scores["per_class_iou"],
+        "label_space": space.name,
         "mask": mode or "none",
         "frames": len(tokens),
         "missing_predictions": sum(path is None for path in pred_paths.values()),
@@ -264,12 +300,15 @@ def _percent(value: float | None) -> str:
 
 def markdown_table(result: Mapping) -> str:
     """The result as papers print it: percent with two decimals, mIoU, IoU and the semantic classes (free left out)."""
-    classes = [name for name in result["per_class_iou"] if name != OCC3D.classes[_FREE]]
+    space = label_space(result.get("label_space", "occ3d"))
+    free = space.taxonomy.classes[space.free_index]
+    classes = [name for name in result["per_class_iou"] if name != free]
     header = ["mIoU", "IoU", *classes]
     values = [_percent(result["miou"]), _percent(result["iou"])]
     values += [_percent(result["per_class_iou"][name]) for name in classes]
+    title = {"occ3d": "Occ3D-nuScenes", "surroundocc": "SurroundOcc-nuScenes"}[space.name]
     lines = [
-        f"Occ3D-nuScenes, {result['frames']} frames, mask: {result['mask']}, "
+        f"{title}, {result['frames']} frames, mask: {result['mask'] or 'none'}, "
         f"missing predictions: {result['missing_predictions']}",
         "",
         "| " + " | ".join(header) + " |",
@@ -295,7 +334,8 @@ def _plot_per_class(result: Mapping, path: Path) -> None:
 
     names = list(result["per_class_iou"])
     values = [100 * (result["per_class_iou"][name] or 0.0) for name in names]
-    colors = [tuple(c / 255 for c in OCC3D.colors[OCC3D.classes.index(name)]) for name in names]
+    taxonomy = label_space(result.get("label_space", "occ3d")).taxonomy
+    colors = [tuple(c / 255 for c in taxonomy.colors[taxonomy.classes.index(name)]) for name in names]
     figure, axis = plt.subplots(figsize=(7, 0.32 * len(names) + 1.2), dpi=120)
     # A dark outline keeps the white (free) and black (others) bars visible on a white background.
     axis.barh(names, values, color=colors, edgecolor="#222222", linewidth=0.8)
@@ -308,7 +348,7 @@ def _plot_per_class(result: Mapping, path: Path) -> None:
     axis.invert_yaxis()
     axis.set_xlim(0, 100)
     axis.set_xlabel("IoU (%)")
-    axis.set_title(f"Per-class IoU, {result['frames']} frames, mask: {result['mask']}")
+    axis.set_title(f"Per-class IoU, {result['frames']} frames, mask: {result['mask'] or 'none'}")
     figure.tight_layout()
     figure.savefig(path)
     plt.close(figure)

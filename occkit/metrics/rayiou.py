@@ -19,17 +19,20 @@ from collections.abc import Sequence
 import numpy as np
 from numba import njit, prange
 
+from occkit.label_space import OCC3D_SPACE
+
 __all__ = ["RAYIOU_THRESHOLDS", "ray_directions", "cast_rays_exact", "rayiou", "rayiou_from_counts"]
 
 #: Depth thresholds in metres of RayIoU@1, @2 and @4.
 RAYIOU_THRESHOLDS: tuple[int, ...] = (1, 2, 4)
 
-_GRID_SHAPE = (200, 200, 16)
-_LOWER = (-40.0, -40.0, -1.0)
+# RayIoU is defined on Occ3D's ego-frame grid with its free class (SparseOcc's protocol).
+_GRID_SHAPE = OCC3D_SPACE.grid.shape
+_LOWER = OCC3D_SPACE.grid.lower
 # The reference divides by a float32 voxel size promoted to double; 0.4 in double flips some labels.
-_VOXEL = float(np.float32(0.4))
-_FREE = 17
-_NUM_CLASSES = 17
+_VOXEL = float(np.float32(OCC3D_SPACE.grid.voxel_size[0]))
+_FREE = OCC3D_SPACE.free_index
+_NUM_CLASSES = len(OCC3D_SPACE.semantic_ids)
 # Loop bound of the reference kernel (MAX_STEP): a ray that takes more steps stops where it is.
 _MAX_STEP = 1000
 
