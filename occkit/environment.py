@@ -49,6 +49,20 @@ def _sparse_backend() -> dict:
     return {"available": True, "cpu_backward_patched": sparse.SPCONV_CPU_BACKWARD_PATCHED}
 
 
+def _determinism() -> dict:
+    """What repeats bitwise from run to run here (measured by ``benchmarks/determinism.py`` and the engine tests)."""
+    import torch
+
+    threads = torch.get_num_threads()
+    return {
+        "cpu_training": f"bitwise repeatable at a fixed thread count (now {threads}), a run killed and resumed with "
+                        "--resume auto included",
+        "not_deterministic": "runs with different thread counts (they differ in the last bits), CUDA training "
+                             "(atomic scatter-adds, cuDNN's algorithm choice); torchrun runs are not checked",
+        "torch_deterministic_algorithms": torch.are_deterministic_algorithms_enabled(),
+    }
+
+
 def environment_report() -> dict:
     """A JSON-ready description of the software, hardware, grids and taxonomies occkit sees."""
     from occkit import __version__
@@ -62,6 +76,7 @@ def environment_report() -> dict:
         "packages": _package_versions(),
         "devices": _devices(),
         "sparse_conv": _sparse_backend(),
+        "determinism": _determinism(),
         "grids": {
             name: {**grid.to_dict(), "shape": list(grid.shape)}
             for name, grid in (("occ3d", OCC3D_GRID), ("surroundocc", SURROUNDOCC_GRID))
@@ -90,6 +105,8 @@ def format_environment_report(report: dict) -> str:
         "packages: " + ", ".join(f"{name} {version}" for name, version in report["packages"].items()),
         f"device:   {device_line}",
         f"sparse:   {sparse_line}",
+        f"repeats:  CPU training is {report['determinism']['cpu_training']}",
+        f"          not bitwise: {report['determinism']['not_deterministic']}",
         "grids:",
     ]
     for name, grid in report["grids"].items():

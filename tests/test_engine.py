@@ -9,8 +9,10 @@
 * bad input is one ``occkit <command>: error:`` line on stderr, a non-zero exit and nothing overwritten;
 * ``occkit eval``, ``occkit predict`` and ``occkit eval-preds`` agree; the learning-rate schedule.
 
-Every training run is a small ``flashocc_tiny`` (64 x 176 crops, no C5 stage, narrow BEV) on the CPU, in a subprocess
-with one thread, so that runs compare bitwise and two ranks share the two cores of a laptop.
+Every training run is a small ``flashocc_tiny`` (64 x 176 crops, 88 depth bins, no C5 stage, narrow BEV) on the CPU,
+in a subprocess. The runs compared bitwise (kill and resume) have two threads each, PyTorch's default on a two-core
+machine: a thread count above one is what exposes an order of floating-point additions left to thread scheduling.
+The ranks of a ``torchrun`` launch have one thread each, so that two of them share the two cores of a laptop.
 """
 
 from __future__ import annotations
@@ -45,6 +47,9 @@ SMALL = (
     "data.cameras=[CAM_FRONT, CAM_BACK]",
     "data.image_aug.final_size=[64, 176]",
     "model.lss.image_size=[64, 176]",
+    # 88 depth bins: about 3300 frustum points, enough that the splat's gradient kernels run on both threads of the
+    # bitwise runs (with 44, every such kernel stays under PyTorch's parallel grain and runs on one thread).
+    "model.lss.depth_range=[1.0, 45.0, 0.5]",
     "model.image.out_stages=[3]",
     "model.bev.channels=[16, 32, 64]",
     "model.bev.neck_channels=16",
@@ -67,8 +72,15 @@ SMALL = (
     "train.keep_last=2",
     "train.seed=0",
 )
-#: One thread per process: bitwise comparisons need the same thread count everywhere, and ranks share two cores.
+#: One thread per process, for the runs that share the two cores (torchrun ranks) or compare nothing bitwise.
 ENV = {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+#: Two threads per process for the runs compared bitwise: runs repeat exactly at any fixed thread count, and more
+#: than one is the case that needs the fixed-order reductions of the models. Two such runs go side by side on two
+#: cores; passive waiting lets a thread that waits for a descheduled sibling give its core away instead of spinning
+#: (three times quicker here), and changes no result.
+BITWISE_THREADS = 2
+BITWISE_ENV = {**os.environ, "OMP_NUM_THREADS": str(BITWISE_THREADS), "MKL_NUM_THREADS": str(BITWISE_THREADS),
+               "OMP_WAIT_POLICY": "PASSIVE"}  # fmt: skip
 #: Change to draw other kill moments (``OCCKIT_TEST_KILL_SEED=7 pytest tests/test_engine.py``).
 KILL_SEED = int(os.environ.get("OCCKIT_TEST_KILL_SEED", "0"))
 TIMEOUT = 300
@@ -92,16 +104,16 @@ def _torchrun(args) -> list[str]:
     return [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", "2", *map(str, args)]
 
 
-def _run(command: list[str], timeout: float = TIMEOUT) -> subprocess.CompletedProcess:
-    result = subprocess.run(command, env=ENV, cwd=REPO, capture_output=True, text=True, timeout=timeout)
+def _run(command: list[str], timeout: float = TIMEOUT, env: dict = ENV) -> subprocess.CompletedProcess:
+    result = subprocess.run(command, env=env, cwd=REPO, capture_output=True, text=True, timeout=timeout)
     assert result.returncode == 0, f"{command[2:5]} exited {result.returncode}:\n{result.stderr[-4000:]}"
     return result
 
 
-def _start(args, stderr: Path) -> subprocess.Popen:
+def _start(args, stderr: Path, env: dict = ENV) -> subprocess.Popen:
     """``occkit ARGS`` in the background, its stderr going to the file ``stderr`` (a pipe nobody reads could fill)."""
     with open(stderr, "wb") as handle:
-        return subprocess.Popen(_command(args), env=ENV, cwd=REPO, stdout=subprocess.DEVNULL, stderr=handle)
+        return subprocess.Popen(_command(args), env=env, cwd=REPO, stdout=subprocess.DEVNULL, stderr=handle)
 
 
 def _finish(process: subprocess.Popen, stderr: Path) -> None:
@@ -165,18 +177,18 @@ def _without_speed(rows: list[dict]) -> list[dict]:
 
 # ------------------------------------------------------------------------------------------------------ fixtures
 @contextlib.contextmanager
-def _one_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
+def _threads(count: int):
+    before = torch.get_num_threads()
+    torch.set_num_threads(count)
     try:
         yield
     finally:
-        torch.set_num_threads(threads)
+        torch.set_num_threads(before)
 
 
 @pytest.fixture(scope="module", autouse=True)
 def _tests_on_one_thread():
-    with _one_thread():
+    with _threads(1):
         yield
 
 
@@ -194,24 +206,25 @@ def data(tmp_path_factory) -> Path:
 
 def _kill_and_resume(data: Path, folder: Path, extra: tuple[str, ...], kills_after: list[int], seed: int) -> dict:
     """An uninterrupted run, and one killed ``kills_after[i]`` steps past the last logged one of the previous attempt
-    and resumed (``--resume auto``) each time, then resumed to the end.
+    and resumed (``--resume auto``) each time, then resumed to the end; every process with ``BITWISE_THREADS``.
 
     Returns both run folders and copies of the killed folder right after each kill."""
     rng = random.Random(seed)
     reference, killed = folder / "uninterrupted", folder / "killed"
     started = time.perf_counter()
-    # The uninterrupted run goes alongside the others: each has one thread, and there are two cores.
-    uninterrupted = _start(_train_args(data, reference, *extra), folder / "uninterrupted.stderr")
+    # The uninterrupted run goes alongside the others (see BITWISE_ENV).
+    uninterrupted = _start(_train_args(data, reference, *extra), folder / "uninterrupted.stderr", env=BITWISE_ENV)
     snapshots = []
     for number, steps in enumerate(kills_after):
         # Past every row the killed attempts logged, so it is this attempt that reaches the step.
         step = _logged_step(killed) + steps
         stderr = folder / f"attempt-{number}.stderr"
-        process = _start(_train_args(data, killed, *extra) + (["--resume", "auto"] if number else []), stderr)
+        process = _start(_train_args(data, killed, *extra) + (["--resume", "auto"] if number else []), stderr,
+                         env=BITWISE_ENV)  # fmt: skip
         _kill_mid_training(process, killed, step, rng, stderr)
         snapshots.append(folder / f"after-kill-{number}")
         shutil.copytree(killed, snapshots[-1])
-    _run(_command(_train_args(data, killed, *extra) + ["--resume", "auto"]))
+    _run(_command(_train_args(data, killed, *extra) + ["--resume", "auto"]), env=BITWISE_ENV)
     _finish(uninterrupted, folder / "uninterrupted.stderr")
     return {"reference": reference, "killed": killed, "snapshots": snapshots,
             "seconds": time.perf_counter() - started}  # fmt: skip
@@ -338,11 +351,12 @@ def test_resume_auto_after_a_kill_before_the_first_checkpoint_starts_afresh(data
         if step == 2:
             raise Killed
 
-    with pytest.raises(Killed):  # steps 1 and 2 logged; the first checkpoint would come at step 3
-        train(experiment, out, progress=False, device="cpu", on_step=kill_at_step_two)
-    first_attempt = _rows(out / "log.jsonl")
-    assert latest_checkpoint(out) is None and [r["step"] for r in first_attempt] == [1, 2]
-    assert train(experiment, out, resume="auto", progress=False, device="cpu").steps == 3
+    with _threads(BITWISE_THREADS):  # the logged losses of both attempts are compared bitwise
+        with pytest.raises(Killed):  # steps 1 and 2 logged; the first checkpoint would come at step 3
+            train(experiment, out, progress=False, device="cpu", on_step=kill_at_step_two)
+        first_attempt = _rows(out / "log.jsonl")
+        assert latest_checkpoint(out) is None and [r["step"] for r in first_attempt] == [1, 2]
+        assert train(experiment, out, resume="auto", progress=False, device="cpu").steps == 3
     rows = _rows(out / "log.jsonl")
     assert [r["step"] for r in rows] == [1, 2, 3]  # no step twice
     assert _without_speed(rows[:2]) == _without_speed(first_attempt)
@@ -400,7 +414,7 @@ def ddp(data, tmp_path_factory) -> dict:
     seconds["train, 1 process"] = time.perf_counter() - started
     evaluate = ["eval", "--ckpt", folder / "two" / "best.pt", "--data", data, "--workers", "0", "--device", "cpu"]
     started = time.perf_counter()
-    with _one_thread():  # one process: this one, on one thread as the subprocesses
+    with _threads(1):  # one process: this one, on one thread as the subprocesses
         assert main([str(arg) for arg in (*evaluate, "--out", folder / "eval-one", "--save-predictions")]) == 0
     seconds["eval, 1 process"] = time.perf_counter() - started
     started = time.perf_counter()

@@ -66,6 +66,8 @@ from typing import Literal
 import torch
 from torch import Tensor, nn
 
+from occkit.models.indexing import take
+
 __all__ = ["DirectionAwareConv", "DACBlock", "direction_aware_conv", "band_index"]
 
 Direction = Literal["h", "v"]
@@ -105,7 +107,9 @@ def _convolve(x: Tensor, kernel: Tensor, index: Tensor, direction: Direction) ->
     """Per-sample depthwise convolution of ``x`` ``(B, C, H, W)`` with ``kernel`` ``(B, C, L)`` (or ``(C, L)``)
     along dim 2 (``"v"``, ``L = H``) or dim 3 (``"h"``, ``L = W``), given the ``(L, L)`` :func:`_operand_index`."""
     kernel = nn.functional.pad(kernel, (0, 1))  # (..., L + 1): the last entry is the zero of "zeros" padding
-    operand = kernel[..., index]  # (B, C, L, L): M for "v", M^T for "h"
+    # Every kernel tap appears L times in the band; take sums their gradients in a fixed order on the CPU, where
+    # kernel[..., index] would add them with racing threads (see occkit.models.indexing).
+    operand = take(kernel, index, dim=-1)  # (B, C, L, L): M for "v", M^T for "h"
     if direction == "v":
         return operand @ x  # (B, C, H, H) @ (B, C, H, W): out[:, :, i, w] = sum_j M[i, j] x[:, :, j, w]
     return x @ operand  # (B, C, H, W) @ (B, C, W, W): out[:, :, h, i] = sum_j x[:, :, h, j] M[i, j]

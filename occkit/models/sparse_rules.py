@@ -35,6 +35,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor, nn
 
+from occkit.models.indexing import take
 from occkit.models.lidar_encoder import SparseBasicBlock, SparseEncoder
 from occkit.models.sparse import SparseConv3d, SparseSequential, SubMConv3d
 
@@ -276,7 +277,8 @@ def sparse_conv(features: Tensor, weight: Tensor, pairs: Tensor, spec: ConvSpec,
     kernel = weight.reshape(c_out, spec.num_offsets, c_in)  # (C_out, K, C_in)
     listed = kernel[:, list(spec.offsets)].permute(1, 2, 0)  # (K', C_in, C_out)
     offsets = len(spec.offsets)
-    products = torch.bmm(features[pairs[0]], listed)  # (K', L, C_out)
+    # take: an input row is read through several offsets, and take's backward sums them in a fixed order on the CPU.
+    products = torch.bmm(take(features, pairs[0]), listed)  # (K', L, C_out)
     # Each (output row, offset) gets a row of its own, (N_out + 1) * K' rows: within one offset an output row
     # occurs once, so only padding pairs (into the dump row N_out) share a row. index_add becomes a row-wise
     # ScatterND(reduction="add"), which onnxruntime spreads over threads without guarding repeated rows: summing

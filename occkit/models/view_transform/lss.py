@@ -33,6 +33,7 @@ from torch import Tensor, nn
 
 from occkit.geometry.camera import invert_image_aug
 from occkit.geometry.grid import VoxelGrid
+from occkit.models.indexing import take
 
 __all__ = [
     "LSSConfig",
@@ -302,7 +303,9 @@ def voxel_pool(weights: Tensor, context: Tensor, plan: PoolingPlan, grid_shape: 
     channels = context.shape[2]
     dtype = torch.promote_types(torch.promote_types(weights.dtype, context.dtype), torch.float32)
     rows = context.to(dtype).permute(0, 1, 3, 4, 2).reshape(-1, channels)  # (B*N*h*w, C)
-    values = weights.to(dtype).reshape(-1)[plan.ranks_depth, None] * rows[plan.ranks_feat]  # (M, C)
+    # take rather than rows[...]: a context row feeds up to D points, and take's backward sums those gradients in a
+    # fixed order on the CPU (see occkit.models.indexing).
+    values = take(weights.to(dtype).reshape(-1), plan.ranks_depth)[:, None] * take(rows, plan.ranks_feat)  # (M, C)
     volume = _add_rows(rows.new_zeros(batch * size_z * size_x * size_y, channels), plan.ranks_bev, values)
     return volume.view(batch, size_z, size_x, size_y, channels).permute(0, 4, 1, 2, 3).contiguous()
 
@@ -313,7 +316,8 @@ def _add_rows(volume: Tensor, index: Tensor, values: Tensor) -> Tensor:
         # The TorchScript exporter writes index_add as a ScatterElements without reduction, silently wrong for
         # repeated indices; scatter_add becomes ScatterElements(reduction="add") with either exporter.
         return volume.scatter_add(0, index[:, None].expand_as(values), values)
-    # index_add in eager: deterministic on CUDA under torch.use_deterministic_algorithms.
+    # index_add in eager: sums in index order on the CPU, whatever the thread count, and
+    # deterministic on CUDA under torch.use_deterministic_algorithms.
     return volume.index_add(0, index, values)
 
 
