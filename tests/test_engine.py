@@ -719,3 +719,26 @@ def test_a_checkpoint_from_before_a_new_option_is_compatible_while_the_option_ke
     older["occupancy"]["retired_option"] = 1  # an option since removed: compared as saved, so named
     with pytest.raises(ValueError, match="model.occupancy.retired_option is 1 in the checkpoint but absent here"):
         check_compatible(payload, "flashocc", current, "old.pt")
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_plain_cuda_means_this_processs_gpu():
+    from occkit.engine import distributed
+
+    try:
+        assert distributed.setup("cuda").device == torch.device("cuda", 0)
+    finally:
+        distributed.teardown()
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_generator_states_loaded_onto_the_gpu_restore():
+    """A checkpoint loaded with map_location="cuda" (as a CUDA run resumes) carries its generator states there."""
+    from occkit.engine.checkpoint import rng_state, set_rng_state
+
+    state = rng_state()
+    expected = (torch.rand(3), torch.rand(3, device="cuda"))
+    on_gpu = {**state, "torch": state["torch"].cuda(), "cuda": [s.cuda() for s in state["cuda"]],
+              "numpy": {**state["numpy"], "keys": state["numpy"]["keys"].cuda()}}  # fmt: skip
+    set_rng_state(on_gpu)
+    assert torch.equal(torch.rand(3), expected[0]) and torch.equal(torch.rand(3, device="cuda"), expected[1])

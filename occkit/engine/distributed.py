@@ -44,6 +44,8 @@ def setup(device: str | None = None) -> Context:
         device = f"cuda:{local_rank}" if torch.cuda.is_available() else "cpu"
     target = torch.device(device)
     if target.type == "cuda":
+        if target.index is None:  # plain "cuda": this process's GPU (set_device needs an index)
+            target = torch.device("cuda", local_rank)
         torch.cuda.set_device(target)
     else:
         # Subnormal floats (gradients and activations decaying towards zero) run an order of magnitude slower on
