@@ -27,6 +27,9 @@ from occkit.arguments import (
     output_folder,
 )
 
+#: The names of :data:`occkit.label_space.LABEL_SPACES`, spelled out so that ``occkit --help`` imports no torch
+#: (``tests/test_cli.py`` keeps them equal).
+LABEL_SPACE_NAMES = ("occ3d", "surroundocc")
 
 # ----------------------------------------------------------------------------------------------------- info
 def _add_info(parser: argparse.ArgumentParser) -> None:
@@ -236,7 +239,7 @@ def _add_eval_preds(parser: argparse.ArgumentParser) -> None:
         "--preds", type=Path, required=True, help="folder of <token>.npz predictions (key semantics or pred)"
     )
     parser.add_argument("--out", type=Path, required=True, help="folder for metrics.json, metrics.md and the plot")
-    parser.add_argument("--label-space", choices=("occ3d", "surroundocc"), default="occ3d",
+    parser.add_argument("--label-space", choices=LABEL_SPACE_NAMES, default="occ3d",
                         help="the benchmark of ground truth and predictions (default occ3d); surroundocc needs "
                              "--nuscenes ROOT --version V to pair its files with sample tokens")
     parser.add_argument(
@@ -637,15 +640,17 @@ def _run_bench(args: argparse.Namespace) -> int:
 
 # ----------------------------------------------------------------------------------------------------- viz
 def _add_viz(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--data", type=Path, required=True, help="dataset root (nuScenes + Occ3D layout)")
+    parser.add_argument("--data", type=Path, required=True, help="dataset root (nuScenes layout)")
     parser.add_argument("--split", default="val", help="split to take frames from (default val)")
     parser.add_argument("--version", default="v1.0-synth", help="table folder under --data (default v1.0-synth)")
+    parser.add_argument("--label-space", choices=LABEL_SPACE_NAMES, default=None,
+                        help="labels and predictions to draw (default: the checkpoint's, else occ3d)")
     frames = parser.add_mutually_exclusive_group()
     frames.add_argument("--frames", type=integer(1), default=3, help="frames spread evenly over the split (default 3)")
     frames.add_argument("--token", nargs="+", default=(), metavar="TOKEN", help="sample tokens to render instead")
     predictions = parser.add_mutually_exclusive_group()
     predictions.add_argument("--pred", type=Path, metavar="DIR",
-                             help="folder of Occ3D <token>.npz predictions (as occkit predict writes them)")
+                             help="folder of <token>.npz predictions (as occkit predict writes them)")
     predictions.add_argument("--ckpt", type=Path, metavar="FILE", help="predict on the fly with this checkpoint")
     parser.add_argument("--device", default="cpu", help="where --ckpt's model runs (default cpu)")
     parser.add_argument("--sweeps", type=integer(0), default=0,
@@ -673,7 +678,7 @@ def _run_viz(args: argparse.Namespace) -> int:
     check_memory(3 * 4 * width * height * args.dpi**2, f"a {width:g} x {height:g} inch figure at {args.dpi} dpi",
                  "--dpi")
     config = VizConfig(data=str(args.data), out=str(args.out), split=args.split, version=args.version,
-                       frames=args.frames, tokens=tuple(args.token),
+                       frames=args.frames, tokens=tuple(args.token), label_space=args.label_space,
                        pred=None if args.pred is None else str(args.pred),
                        ckpt=None if args.ckpt is None else str(args.ckpt), device=args.device, sweeps=args.sweeps,
                        display_width=args.display_width, dpi=args.dpi, colors=args.colors)  # fmt: skip

@@ -67,7 +67,7 @@ def environment_report() -> dict:
     """A JSON-ready description of the software, hardware, grids and taxonomies occkit sees."""
     from occkit import __version__
     from occkit.classes import TAXONOMIES
-    from occkit.geometry.grid import OCC3D_GRID, SURROUNDOCC_GRID
+    from occkit.label_space import LABEL_SPACES
 
     return {
         "occkit": __version__,
@@ -78,8 +78,7 @@ def environment_report() -> dict:
         "sparse_conv": _sparse_backend(),
         "determinism": _determinism(),
         "grids": {
-            name: {**grid.to_dict(), "shape": list(grid.shape)}
-            for name, grid in (("occ3d", OCC3D_GRID), ("surroundocc", SURROUNDOCC_GRID))
+            name: {**space.grid.to_dict(), "shape": list(space.grid.shape)} for name, space in LABEL_SPACES.items()
         },
         "taxonomies": {
             name: {"classes": list(t.classes), "empty_index": t.empty_index, "ignore_index": t.ignore_index}

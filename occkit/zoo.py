@@ -19,6 +19,7 @@ from typing import Any
 from torch import nn
 
 from occkit.config import ConfigError
+from occkit.label_space import OCC3D_SPACE, SURROUNDOCC_SPACE
 
 __all__ = ["names", "description", "model_config", "experiment", "build", "build_from_config", "config_yaml",
            "ARCHITECTURES"]
@@ -62,13 +63,13 @@ def _daocc_surroundocc() -> Any:
     from occkit.models.heads.occupancy import OccupancyHeadConfig
     from occkit.models.range_extension import RangeExtensionConfig
 
-    cfg = _daocc()
+    space = SURROUNDOCC_SPACE
     return dataclasses.replace(
-        cfg,
-        occ_range=(-50.0, -50.0, -5.0, 50.0, 50.0, 3.0),
-        occ_voxel_size=(0.5, 0.5, 0.5),
-        range_extension=RangeExtensionConfig(label_frame="lidar"),
-        occupancy=OccupancyHeadConfig(num_classes=17, free_index=0, use_mask=False),
+        _daocc(),
+        occ_range=space.grid.point_cloud_range,
+        occ_voxel_size=space.grid.voxel_size,
+        range_extension=RangeExtensionConfig(label_frame=space.frame),
+        occupancy=OccupancyHeadConfig(num_classes=space.num_classes, free_index=space.free_index, use_mask=False),
     )
 
 
@@ -123,19 +124,19 @@ def _daocc_surroundocc_tiny() -> Any:
     +-50.4 m BEV of 0.6 m cells (168 x 168) so that the grid lies inside it, drop-free CE and Lovasz, no mask."""
     from occkit.models.heads.occupancy import OccupancyHeadConfig
 
-    cfg = _daocc_tiny()
+    cfg, space = _daocc_tiny(), SURROUNDOCC_SPACE
     extent = 50.4
     lidar_range = (-extent, -extent, -5.0, extent, extent, 3.0)
     return dataclasses.replace(
         cfg,
-        occ_range=(-50.0, -50.0, -5.0, 50.0, 50.0, 3.0),
-        occ_voxel_size=(0.5, 0.5, 0.5),
+        occ_range=space.grid.point_cloud_range,
+        occ_voxel_size=space.grid.voxel_size,
         view=dataclasses.replace(cfg.view, point_cloud_range=lidar_range, grid_size=(168, 168, 4)),
         lidar=dataclasses.replace(cfg.lidar, point_cloud_range=lidar_range),
         range_extension=dataclasses.replace(cfg.range_extension, bev_range=(-extent, -extent, extent, extent),
-                                            label_frame="lidar"),
-        occupancy=OccupancyHeadConfig(in_channels=32, hidden_channels=32, num_classes=17, free_index=0,
-                                      use_mask=False, lovasz_weight=1.0),
+                                            label_frame=space.frame),
+        occupancy=OccupancyHeadConfig(in_channels=32, hidden_channels=32, num_classes=space.num_classes,
+                                      free_index=space.free_index, use_mask=False, lovasz_weight=1.0),
         detection=dataclasses.replace(cfg.detection, point_cloud_range=lidar_range),
     )  # fmt: skip
 
@@ -221,7 +222,7 @@ def _data(family: str, tiny: bool) -> Any:
 
     sweeps = {"daocc": 9, "daocc_lidar": 9, "daocc_surroundocc": 9, "flashocc": -1, "da_occ": 0}[family]
     cameras = () if family == "daocc_lidar" else CAMERAS
-    space = "surroundocc" if family == "daocc_surroundocc" else "occ3d"
+    space = (SURROUNDOCC_SPACE if family == "daocc_surroundocc" else OCC3D_SPACE).name
     if not tiny:
         return DatasetConfig(cameras=cameras, sweeps=sweeps, boxes=family.startswith("daocc"), augment=True,
                              depth_downsample=16 if family == "da_occ" else 0, label_space=space)  # fmt: skip

@@ -8,9 +8,8 @@ import pytest
 import torch
 
 from occkit.geometry.se3 import make_transform, rotation_about_z
+from occkit.label_space import OCC3D_SPACE, LabelSpace
 from occkit.types import Batch
-
-OCC_SHAPE = (200, 200, 16)
 
 
 def _camera2ego(yaw_deg: float) -> torch.Tensor:
@@ -26,10 +25,12 @@ def make_batch(
     seed: int = 0,
     occupancy: bool = True,
     depth_stride: int = 0,
+    space: LabelSpace = OCC3D_SPACE,
 ) -> Batch:
-    """A batch with ``num_cameras`` cameras spread around the car, random points in +-40 m, ten boxes per sample
-    and labels that follow simple rules (ground low, a vehicle class around three of the boxes, free above); with
-    ``depth_stride``, LiDAR-like depth (0 = none) and height (NaN = none) maps at that feature stride."""
+    """A batch with ``num_cameras`` cameras (0 allowed) spread around the car, random points in +-40 m, ten boxes per
+    sample and ``space`` labels that follow simple rules (ground low, a vehicle class around three of the boxes, free
+    above; the visibility masks where the space has them); with ``depth_stride``, LiDAR-like depth (0 = none) and
+    height (NaN = none) maps at that feature stride."""
     generator = torch.Generator().manual_seed(seed)
     height, width = image_size
     focal = width / 2
@@ -55,7 +56,8 @@ def make_batch(
         scenes=["scene-test"] * batch_size,
         images=torch.randn(batch_size, num_cameras, 3, height, width, generator=generator),
         intrinsics=intrinsics.expand(batch_size, num_cameras, 3, 3).clone(),
-        cam2ego=torch.stack([_camera2ego(y) for y in yaws]).expand(batch_size, -1, -1, -1).clone(),
+        cam2ego=torch.stack([_camera2ego(y) for y in yaws] or [torch.eye(4)])[:num_cameras]
+        .expand(batch_size, -1, -1, -1).clone(),
         img_aug=torch.eye(3).expand(batch_size, num_cameras, 3, 3).clone(),
         camera_mask=torch.ones(batch_size, num_cameras, dtype=torch.bool),
         lidar2ego=lidar2ego.expand(batch_size, 4, 4).clone(),
@@ -68,15 +70,20 @@ def make_batch(
         box_labels=[box_labels.clone() for _ in range(batch_size)],
     )
     if occupancy:
-        labels = torch.full((batch_size, *OCC_SHAPE), 17, dtype=torch.uint8)
-        labels[..., :2] = 11  # driveable surface at z < -0.2 m
+        shape, grid = space.grid.shape, space.grid
+        # Occ3D and SurroundOcc share the ids 1..16 (barrier .. vegetation); free / empty is 17 or 0.
+        road, vehicle = space.taxonomy.index("driveable_surface"), space.taxonomy.index("barrier")
+        labels = torch.full((batch_size, *shape), space.free_index, dtype=torch.uint8)
+        labels[..., :2] = road  # the two lowest layers
         for b, centre in enumerate(centres):
-            ix, iy = ((centre[:3] + 40) / 0.4).long().T
+            ix, iy = ((centre[:3] - torch.tensor(grid.lower[:2])) / torch.tensor(grid.voxel_size[:2])).long().T
             for x, y in zip(ix.tolist(), iy.tolist(), strict=True):
-                labels[b, x - 5 : x + 6, y - 2 : y + 3, 2:6] = 1 + b  # a vehicle class per sample
+                labels[b, x - 5 : x + 6, y - 2 : y + 3, 2:6] = vehicle + b  # a vehicle class per sample
         batch.voxel_semantics = labels
-        batch.mask_camera = torch.rand(batch_size, *OCC_SHAPE, generator=generator) > 0.3
-        batch.mask_lidar = torch.ones(batch_size, *OCC_SHAPE, dtype=torch.bool)
+        if "camera" in space.masks:
+            batch.mask_camera = torch.rand(batch_size, *shape, generator=generator) > 0.3
+        if "lidar" in space.masks:
+            batch.mask_lidar = torch.ones(batch_size, *shape, dtype=torch.bool)
     if depth_stride:
         shape = (batch_size, num_cameras, height // depth_stride, width // depth_stride)
         batch.depth_maps = (torch.rand(shape, generator=generator) * 50).where(

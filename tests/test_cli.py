@@ -10,7 +10,8 @@ from pathlib import Path
 import pytest
 
 from occkit import __version__
-from occkit.cli import COMMANDS, main
+from occkit.cli import COMMANDS, LABEL_SPACE_NAMES, main
+from occkit.label_space import LABEL_SPACES
 
 
 def test_version(capsys):
@@ -38,6 +39,10 @@ def test_help_imports_no_heavy_library():
     code = "import sys, occkit.cli; print(sorted(m for m in ('torch', 'spconv', 'numpy') if m in sys.modules))"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "[]"
+
+
+def test_the_cli_names_every_label_space():
+    assert tuple(LABEL_SPACES) == LABEL_SPACE_NAMES
 
 
 def test_entry_point_runs():

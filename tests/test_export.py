@@ -125,7 +125,7 @@ def tiny_model(name: str) -> nn.Module:
 #: Per tiny model: a batch it accepts (DA-Occ's DACs fix the feature height, 128 / 16; DAOcc's five cameras of
 #: 90 degrees overlap, so the camera average sums several samples into one voxel) and operators its graph must hold.
 CASES = {
-    "flashocc_tiny": ({"num_cameras": 2}, {"Conv", "GatherND", "ScatterElements", "Softmax"}),
+    "flashocc_tiny": ({"num_cameras": 2}, {"Conv", "Gather", "ScatterElements", "Softmax"}),
     "da_occ_tiny": ({"num_cameras": 2, "image_size": (128, 352)}, {"Conv", "GatherElements", "MatMul", "Erf"}),
     "daocc_tiny": ({"num_cameras": 5, "num_points": 2000}, {"Conv", "GridSample", "ScatterND", "MatMul"}),
 }

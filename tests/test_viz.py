@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 from pathlib import Path
@@ -16,6 +17,7 @@ from occkit.cli import main
 from occkit.geometry.camera import image_aug_matrix
 from occkit.geometry.grid import VoxelGrid
 from occkit.geometry.se3 import invert_transform, make_transform, rotation_about_z
+from occkit.label_space import OCC3D_SPACE
 from occkit.types import Sample
 from occkit.viz.bev import bev_extent, bev_figure, bev_image, top_occupied
 from occkit.viz.cameras import (
@@ -48,6 +50,8 @@ from occkit.viz.voxels import draw_voxels, view_direction, voxel_faces
 FREE, CAR, ROAD, TRUCK = 17, 4, 11, 10
 #: A small grid: 8 x 6 x 4 voxels of 0.5 m, x in [-2, 2), y in [-1.5, 1.5), z in [-1, 1).
 GRID = VoxelGrid((-2.0, -1.5, -1.0, 2.0, 1.5, 1.0), 0.5)
+#: Occ3D's classes on that grid.
+SPACE = dataclasses.replace(OCC3D_SPACE, grid=GRID)
 
 
 def _labels() -> np.ndarray:
@@ -102,7 +106,7 @@ def test_bev_marks_unobserved_and_empty_columns():
 def test_bev_figure_has_legend_and_both_panels():
     labels = _labels()
     labels[6, 1, 1:3] = CAR
-    figure = bev_figure(labels, np.ones(GRID.shape, dtype=bool), GRID, title="frame")
+    figure = bev_figure(labels, np.ones(GRID.shape, dtype=bool), SPACE, title="frame")
     axes = figure.axes
     assert [axis.get_title() for axis in axes] == ["all labels", "camera-visible voxels (mask_camera)"]
     legend = [text.get_text() for text in axes[-1].get_legend().get_texts()]
@@ -149,7 +153,7 @@ def test_comparison_title_carries_the_frame_scores():
     scores = frame_scores(gt, pred, mask)
     # Road: all correct (IoU 1); car: 1 voxel right, GT 3 (evaluated), predicted 2 -> 1 / 4; truck: 0 / 1.
     assert scores["miou"] == pytest.approx((1.0 + 0.25 + 0.0) / 3)
-    figure = comparison_figure(gt, pred, mask, GRID, title="frame")
+    figure = comparison_figure(gt, pred, mask, SPACE, title="frame")
     title = figure.get_suptitle()
     assert f"mIoU {100 * scores['miou']:.1f}" in title and f"IoU {100 * scores['iou']:.1f}" in title
     assert [axis.get_title() for axis in figure.axes] == ["ground truth", "prediction", "errors (per column)"]
@@ -173,7 +177,7 @@ def test_draw_voxels_adds_one_collection_with_the_ego_car():
     labels = _labels()
     figure = new_figure(4, 3)
     axis = figure.add_subplot(projection="3d")
-    faces = draw_voxels(axis, labels, grid=GRID)
+    faces = draw_voxels(axis, labels, space=SPACE)
     # Road layer seen from above-behind-right: 48 tops, 6 back faces (x = -2) and 8 right faces (y = -1.5), + car.
     assert faces == 48 + 6 + 8 + 6
     assert len(axis.collections) == 1
@@ -240,7 +244,7 @@ def test_voxel_on_the_optical_axis_lands_at_the_principal_point_in_its_class_col
     cameras = _cameras(("CAM_FRONT",))
     cameras = CameraSet(cameras.names, cameras.images, cameras.intrinsics, _camera(0.0, (0.5, 0.2, 1.2))[None],
                         cameras.img_aug)  # fmt: skip
-    figure = occupancy_camera_figure(cameras, labels, grid=grid)
+    figure = occupancy_camera_figure(cameras, labels, space=dataclasses.replace(OCC3D_SPACE, grid=grid))
     scatter = _axes_by_title(figure)["CAM_FRONT"].collections[0]
     principal = (cameras.img_aug[0] @ torch.tensor([40.0, 30.0, 1.0]))[:2].numpy()
     np.testing.assert_allclose(scatter.get_offsets(), [principal], atol=1e-4)

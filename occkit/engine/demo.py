@@ -16,10 +16,14 @@ from pathlib import Path
 
 import numpy as np
 
+from occkit.label_space import OCC3D_SPACE
+
 __all__ = ["run_demo", "DEMO_MODELS", "DEMO_WORLD"]
 
 #: Zoo entries the demo trains, with their optimizer steps (about 14 and 2 minutes on 2 CPU cores).
 DEMO_MODELS: dict[str, int] = {"daocc_tiny": 700, "flashocc_tiny": 250}
+#: The label space of the demo's world and models: Occ3D (the world writes its labels and visibility masks).
+DEMO_SPACE = OCC3D_SPACE
 #: The synthetic world of the demo: 10 scenes of 24 key frames at 400 x 225 (the last 2-3 scenes held out).
 DEMO_WORLD = {"scenes": 10, "frames": 24, "image_size": (400, 225), "seed": 1}
 
@@ -47,11 +51,11 @@ def _baseline(dataset) -> dict:
     """Scores of predicting the training split's most frequent class (free space) everywhere."""
     from occkit.metrics.confusion import OccupancyMetric
 
-    metric = OccupancyMetric(mask="camera")
+    metric = OccupancyMetric.for_space(DEMO_SPACE)
     for record_index in range(len(dataset)):
         sample = dataset[record_index]
         labels = sample.voxel_semantics.numpy()
-        metric.update(labels, np.full_like(labels, 17), sample.mask_camera.numpy())
+        metric.update(labels, np.full_like(labels, DEMO_SPACE.free_index), sample.mask_camera.numpy())
     return metric.compute()
 
 
@@ -84,7 +88,7 @@ def _render(models: dict, datasets: dict, out: Path, frames: int = 3) -> Path:
                 panels.append((name, model.predict(own).semantics[0].numpy()))
         for column, (title, grid) in enumerate(panels):
             axis = axes[row, column]
-            axis.imshow(bev_image(grid, mask))
+            axis.imshow(bev_image(grid, mask, DEMO_SPACE.taxonomy))
             axis.set_title(f"{title}\n{batch.tokens[0][:8]}" if row == 0 else batch.tokens[0][:8], fontsize=9)
             axis.axis("off")
     fig.suptitle("held-out frames, bird's-eye view (forward up), camera-visible voxels", fontsize=10)
@@ -96,15 +100,14 @@ def _render(models: dict, datasets: dict, out: Path, frames: int = 3) -> Path:
 
 
 def _report(out: Path, results: dict, baseline: dict, seconds: float, render: Path) -> Path:
-    from occkit.classes import OCC3D_CLASSES
-
+    taxonomy = DEMO_SPACE.taxonomy
     lines = [
         "# occkit demo",
         "",
         "Trained on the synthetic world's training scenes and scored on its held-out scenes on this machine "
         f"(this run: {seconds / 60:.1f} min; training already done in this folder is reused). Occ3D protocol: mIoU "
-        "over the 17 semantic classes and geometry IoU (occupied vs free), both under the camera visibility mask; "
-        "RayIoU without mask.",
+        f"over the {len(taxonomy.semantic_ids)} semantic classes and geometry IoU (occupied vs free), both under the "
+        "camera visibility mask; RayIoU without mask.",
         "",
         "| model | inputs | steps | train time | mIoU | IoU | RayIoU |",
         "| --- | --- | --- | --- | --- | --- | --- |",
@@ -117,7 +120,7 @@ def _report(out: Path, results: dict, baseline: dict, seconds: float, render: Pa
                  f"{100 * baseline['iou']:.1f} | - |")
     lines += ["", "Per-class IoU (%):", "", "| class | " + " | ".join(f"`{n}`" for n in results) + " |",
               "| --- |" + " --- |" * len(results)]  # fmt: skip
-    for name in OCC3D_CLASSES[:17]:
+    for name in (taxonomy.classes[i] for i in taxonomy.semantic_ids):
         values = [results[m]["per_class_iou"].get(name) for m in results]
         cells = " | ".join("-" if v is None else f"{100 * v:.1f}" for v in values)
         lines.append(f"| {name} | {cells} |")
@@ -167,6 +170,9 @@ def _train_score_report(out: Path, data: Path, models: dict[str, int], started: 
     results, trained, datasets = {}, {}, {}
     for name, steps in models.items():
         experiment = zoo.experiment(name)
+        if experiment.data.label_space != DEMO_SPACE.name:
+            raise ValueError(f"demo model {name} predicts {experiment.data.label_space} labels; the demo's world "
+                             f"holds {DEMO_SPACE.name} labels")  # fmt: skip
         experiment = dataclasses.replace(experiment, data=dataclasses.replace(experiment.data, root=str(data)))
         experiment = replace_train(experiment, max_steps=steps, epochs=1000, val_every=-1, checkpoint_every=100)
         _say(f"training {name} for {steps} steps ({zoo.description(name)})")

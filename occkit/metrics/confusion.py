@@ -20,7 +20,7 @@ import numpy as np
 import torch
 from numba import njit
 
-from occkit.classes import IGNORE_INDEX, OCC3D
+from occkit.classes import IGNORE_INDEX, OCC3D, SURROUNDOCC
 from occkit.geometry.grid import OCC3D_GRID, VoxelGrid
 from occkit.label_space import LabelSpace
 
@@ -256,7 +256,7 @@ def iou_from_confusion(cm, nan_without_gt: bool = False) -> np.ndarray:
     return iou
 
 
-def miou(cm, classes: Iterable[int] = range(17), nan_without_gt: bool = False) -> float:
+def miou(cm, classes: Iterable[int] = OCC3D.semantic_ids, nan_without_gt: bool = False) -> float:
     """Mean IoU over ``classes`` (Occ3D: 0..16, free excluded), skipping NaN classes; NaN if all are NaN."""
     iou = iou_from_confusion(cm, nan_without_gt)[list(classes)]
     if np.isnan(iou).all():
@@ -264,7 +264,7 @@ def miou(cm, classes: Iterable[int] = range(17), nan_without_gt: bool = False) -
     return float(np.nanmean(iou))
 
 
-def geometry_iou(cm, free_index: int = 17) -> float:
+def geometry_iou(cm, free_index: int = OCC3D.empty_index) -> float:
     """Occupied-vs-free IoU: every class but ``free_index`` counts as occupied.
 
     Equals SparseOcc's 2-class ``Metric_mIoU`` (labels < 17 -> occupied) on the same voxels. NaN if neither GT nor
@@ -291,11 +291,12 @@ def surroundocc_metrics(cm17) -> dict:
         ``per_class_iou``: ``(17,)`` float64 (index 0 = empty).
     """
     cm = _check_square(cm17)
-    if cm.shape[0] != 17:
-        raise ValueError(f"SurroundOcc uses 17 classes (0 = empty), got a {cm.shape[0]}-class matrix")
+    if cm.shape[0] != SURROUNDOCC.num_classes:
+        raise ValueError(f"SurroundOcc uses {SURROUNDOCC.num_classes} classes ({SURROUNDOCC.empty_index} = empty), "
+                         f"got a {cm.shape[0]}-class matrix")  # fmt: skip
     return {
-        "iou": geometry_iou(cm, free_index=0),
-        "miou": miou(cm, classes=range(1, 17)),
+        "iou": geometry_iou(cm, free_index=SURROUNDOCC.empty_index),
+        "miou": miou(cm, classes=SURROUNDOCC.semantic_ids),
         "per_class_iou": iou_from_confusion(cm),
     }
 
@@ -334,8 +335,8 @@ class OccupancyMetric:
 
     def __init__(
         self,
-        num_classes: int = 18,
-        free_index: int = 17,
+        num_classes: int = OCC3D.num_classes,
+        free_index: int = OCC3D.empty_index,
         class_names: Sequence[str] = OCC3D.classes,
         mask: str | None = "camera",
         ignore_index: int | None = IGNORE_INDEX,

@@ -211,7 +211,7 @@ def cast_rays_exact(labels: np.ndarray, origins: np.ndarray) -> tuple[np.ndarray
     out_label = np.empty(n, dtype=np.uint8)
     out_dist = np.empty(n, dtype=np.float32)
     _cast_kernel(labels, _to_voxels(origins), ends, out_label, out_dist)
-    return out_label, out_dist * np.float32(0.4)
+    return out_label, out_dist * np.float32(_VOXEL)
 
 
 def rayiou(

@@ -27,7 +27,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from occkit.geometry.grid import VoxelGrid
+from occkit.geometry.grid import OCC3D_GRID, VoxelGrid
 from occkit.losses import (
     depth_bce,
     height_bce,
@@ -83,8 +83,8 @@ class DirectionAwareOccConfig:
     """Depth bins (min, max, step), metres."""
     height_range: tuple[float, float, float] = (-1.0, 5.4, 0.4)
     """Height bins (min, max, step), metres in the ego frame: one per voxel layer of the height grid."""
-    occ_range: tuple[float, float, float, float, float, float] = (-40.0, -40.0, -1.0, 40.0, 40.0, 5.4)
-    """Occupancy grid extent, ego frame."""
+    occ_range: tuple[float, float, float, float, float, float] = OCC3D_GRID.point_cloud_range
+    """Occupancy grid extent, ego frame (Occ3D's grid)."""
     bev_size: tuple[int, int] = (200, 200)
     """BEV cells (X, Y) of the depth-score projection and the output."""
     height_grid_size: tuple[int, int, int] = (32, 32, 16)

@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor, nn
 
-from occkit.geometry.grid import VoxelGrid
+from occkit.geometry.grid import OCC3D_GRID, VoxelGrid
 from occkit.models.bev_encoder import BevEncoder, BevEncoderConfig, ConvFuser
 from occkit.models.heads.center import CenterHead, CenterHeadConfig
 from occkit.models.heads.occupancy import OccupancyHead, OccupancyHeadConfig, occupancy_prediction
@@ -37,9 +37,10 @@ __all__ = ["DAOccConfig", "DAOcc"]
 class DAOccConfig:
     """DAOcc, paper configuration on Occ3D-nuScenes by default."""
 
-    occ_range: tuple[float, float, float, float, float, float] = (-40.0, -40.0, -1.0, 40.0, 40.0, 5.4)
-    """Occupancy grid extent (x_min, y_min, z_min, x_max, y_max, z_max), metres, in the label frame."""
-    occ_voxel_size: tuple[float, float, float] = (0.4, 0.4, 0.4)
+    occ_range: tuple[float, float, float, float, float, float] = OCC3D_GRID.point_cloud_range
+    """Occupancy grid extent (x_min, y_min, z_min, x_max, y_max, z_max), metres, in the label frame (the label
+    space's grid; Occ3D's by default)."""
+    occ_voxel_size: tuple[float, float, float] = OCC3D_GRID.voxel_size
     """Occupancy voxel size, metres."""
     image: ImageEncoderConfig | None = field(default_factory=ImageEncoderConfig)
     """Camera backbone and neck; None for the LiDAR-only variant."""

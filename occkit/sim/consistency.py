@@ -20,7 +20,7 @@ import numpy as np
 import torch
 
 from occkit.data.tables import NuScenesTables, load_tables
-from occkit.geometry.grid import OCC3D_GRID
+from occkit.label_space import OCC3D_SPACE
 from occkit.sim.rig import pose_matrix
 
 __all__ = ["lidar_in_occupied", "boxes_in_cameras"]
@@ -50,19 +50,20 @@ def lidar_in_occupied(root: str | Path, version: str) -> dict:
     hits = total = 0
     per_frame = []
     offsets = np.array([[0, 0, 0], [-1, 0, 0], [0, -1, 0], [0, 0, -1]]) * _FACE_TOLERANCE
-    upper = np.array(OCC3D_GRID.shape) - 1
+    upper = np.array(OCC3D_SPACE.grid.shape) - 1
     for record, calibration in _key_frame_records(tables, "lidar"):
         points = np.fromfile(root / record["filename"], dtype=np.float32).reshape(-1, 5)[:, :3].astype(np.float64)
         lidar2ego = pose_matrix(calibration["translation"], calibration["rotation"])
         ego = torch.from_numpy(points @ lidar2ego[:3, :3].T + lidar2ego[:3, 3])
-        _, inside = OCC3D_GRID.world_to_index(ego)
+        _, inside = OCC3D_SPACE.grid.world_to_index(ego)
         ego = ego[inside]
-        labels = root / "gts" / sample_scene[record["sample_token"]] / record["sample_token"] / "labels.npz"
+        labels = root / OCC3D_SPACE.label_folder / sample_scene[record["sample_token"]] / record["sample_token"] / \
+            "labels.npz"  # fmt: skip
         with np.load(labels) as gt:
-            occupied = gt["semantics"] != 17
+            occupied = gt["semantics"] != OCC3D_SPACE.free_index
         found = np.zeros(ego.shape[0], dtype=bool)
         for offset in offsets:
-            index = OCC3D_GRID.world_to_index(ego + torch.from_numpy(offset))[0].numpy().clip(0, upper)
+            index = OCC3D_SPACE.grid.world_to_index(ego + torch.from_numpy(offset))[0].numpy().clip(0, upper)
             found |= occupied[index[:, 0], index[:, 1], index[:, 2]]
         hits += int(found.sum())
         total += int(found.size)

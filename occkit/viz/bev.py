@@ -1,10 +1,12 @@
-"""Bird's-eye-view semantic maps: the class of the top-most occupied voxel of each column, in the Occ3D palette.
+"""Bird's-eye-view semantic maps: the class of the top-most occupied voxel of each column, in the class palette.
 
 Orientation (checked by tests): Occ3D labels are indexed ``[x, y, z]`` in the ego frame, x forward, y left, z up
 (docs/conventions.md). A BEV image shows the scene as a driver expects it on a map held in the direction of travel:
 **forward (+x) points up** and **left (+y) is on the left**. Image row ``r`` holds ``x`` index ``X - 1 - r`` and
 image column ``c`` holds ``y`` index ``Y - 1 - c``, i.e. the image is ``columns[::-1, ::-1]``
 (:func:`bev_view`). Drawn with :func:`draw_bev`, the axes are labelled in metres with the same orientation.
+Labels of a label space in the LiDAR frame (SurroundOcc) are drawn in that frame's axes, named on the axes, with the
+sensor's origin marked instead of the ego car.
 """
 
 from __future__ import annotations
@@ -14,8 +16,9 @@ from matplotlib.axes import Axes
 from matplotlib.figure import Figure
 from matplotlib.patches import Rectangle
 
-from occkit.classes import IGNORE_INDEX, OCC3D
+from occkit.classes import IGNORE_INDEX, OCC3D, Taxonomy
 from occkit.geometry.grid import OCC3D_GRID, VoxelGrid
+from occkit.label_space import OCC3D_SPACE, LabelSpace
 from occkit.viz.figure import new_figure
 from occkit.viz.palette import EMPTY_COLOR, UNOBSERVED_COLOR, add_class_legend, class_colors
 
@@ -68,17 +71,17 @@ def bev_view(columns: np.ndarray) -> np.ndarray:
 def bev_image(
     semantics: np.ndarray,
     mask: np.ndarray | None = None,
-    free_index: int = OCC3D.empty_index,
+    taxonomy: Taxonomy = OCC3D,
     shade: float = 0.4,
 ) -> np.ndarray:
     """Top-down colour image of occupancy labels: the class colour of the highest occupied voxel in each column.
 
     Args:
-        semantics: ``(X, Y, Z)`` uint8 Occ3D labels, indexed ``[x, y, z]`` with ego x forward, y left.
+        semantics: ``(X, Y, Z)`` uint8 labels of ``taxonomy``, indexed ``[x, y, z]`` (ego: x forward, y left).
         mask: optional ``(X, Y, Z)`` visibility mask: only the voxels it keeps count, and columns in which it keeps
             no voxel at all are drawn :data:`~occkit.viz.palette.UNOBSERVED_COLOR` (dark).
-        free_index: label of free space; observed columns without an occupied voxel are drawn
-            :data:`~occkit.viz.palette.EMPTY_COLOR`.
+        taxonomy: the classes and colours; observed columns without a voxel other than its free / empty class are
+            drawn :data:`~occkit.viz.palette.EMPTY_COLOR`.
         shade: darkening of low voxels, so that objects stand out from the ground: a voxel at z index ``k`` of
             ``Z`` is scaled by ``1 - shade * (1 - k / (Z - 1))``; 0 gives the exact palette colours.
 
@@ -87,8 +90,8 @@ def bev_image(
     """
     if not 0.0 <= shade <= 1.0:
         raise ValueError(f"shade must lie in [0, 1], got {shade}")
-    top_class, top_z = top_occupied(semantics, mask, free_index)
-    image = class_colors(top_class).astype(np.float32)  # (X, Y, 3)
+    top_class, top_z = top_occupied(semantics, mask, taxonomy.empty_index)
+    image = class_colors(top_class, taxonomy).astype(np.float32)  # (X, Y, 3)
     depth = np.asarray(semantics).shape[2]
     brightness = 1.0 - shade * (1.0 - np.clip(top_z, 0, None) / max(depth - 1, 1))
     image *= brightness[:, :, None]
@@ -115,12 +118,19 @@ def draw_ego(axis: Axes, color: str = "black") -> None:
                   arrowprops={"arrowstyle": "-|>", "color": color, "linewidth": 0.8})  # fmt: skip
 
 
-def draw_bev(axis: Axes, image: np.ndarray, grid: VoxelGrid = OCC3D_GRID, title: str | None = None) -> None:
-    """Show a :func:`bev_view` image in metres with the ego car marked: forward up, left on the left."""
+def draw_bev(axis: Axes, image: np.ndarray, grid: VoxelGrid = OCC3D_GRID, title: str | None = None,
+             frame: str = "ego") -> None:
+    """Show a :func:`bev_view` image in metres: in the ego frame forward up, left on the left, the ego car marked;
+    in the LiDAR frame (``frame="lidar"``) its +x up, its +y on the left, the sensor's origin marked."""
     axis.imshow(image, extent=bev_extent(grid), interpolation="nearest")
-    draw_ego(axis)
-    axis.set_xlabel("y (m), left +", fontsize=7)
-    axis.set_ylabel("x (m), forward +", fontsize=7)
+    if frame == "ego":
+        draw_ego(axis)
+        axis.set_xlabel("y (m), left +", fontsize=7)
+        axis.set_ylabel("x (m), forward +", fontsize=7)
+    else:
+        axis.plot([0.0], [0.0], marker="+", color="black", markersize=8, zorder=3)
+        axis.set_xlabel(f"{frame} y (m)", fontsize=7)
+        axis.set_ylabel(f"{frame} x (m)", fontsize=7)
     axis.tick_params(labelsize=6)
     if title:
         axis.set_title(title, fontsize=8)
@@ -129,16 +139,16 @@ def draw_bev(axis: Axes, image: np.ndarray, grid: VoxelGrid = OCC3D_GRID, title:
 def bev_figure(
     semantics: np.ndarray,
     mask: np.ndarray | None = None,
-    grid: VoxelGrid = OCC3D_GRID,
+    space: LabelSpace = OCC3D_SPACE,
     title: str = "",
     shade: float = 0.25,
 ) -> Figure:
     """BEV semantic map of one frame: all labels and, with a mask, the columns it observes; a class legend.
 
     Args:
-        semantics: ``(X, Y, Z)`` Occ3D labels.
+        semantics: ``(X, Y, Z)`` labels of ``space``.
         mask: optional ``(X, Y, Z)`` visibility mask (``mask_camera``) for a second panel.
-        grid: the grid of ``semantics`` (axis extents in metres).
+        space: the label space of ``semantics`` (grid extents in metres, frame, classes and colours).
         title: figure title.
         shade: see :func:`bev_image`.
     """
@@ -146,10 +156,10 @@ def bev_figure(
     figure = new_figure(3.6 * len(panels) + 1.6, 3.9, layout="constrained")
     axes = figure.subplots(1, len(panels), squeeze=False)[0]
     for axis, (name, panel_mask) in zip(axes, panels, strict=True):
-        draw_bev(axis, bev_image(semantics, panel_mask, shade=shade), grid, name)
-    present = np.unique(top_occupied(semantics)[0])
+        draw_bev(axis, bev_image(semantics, panel_mask, space.taxonomy, shade), space.grid, name, space.frame)
+    present = np.unique(top_occupied(semantics, free_index=space.free_index)[0])
     extra = [("no occupied voxel", EMPTY_COLOR)] + ([("not observed", UNOBSERVED_COLOR)] if mask is not None else [])
-    add_class_legend(axes[-1], present, extra)
+    add_class_legend(axes[-1], present, extra, space.taxonomy)
     if title:
         figure.suptitle(title, fontsize=9)
     return figure

@@ -22,10 +22,11 @@ from matplotlib.colors import Normalize
 from matplotlib.figure import Figure
 from torch import Tensor
 
-from occkit.classes import IGNORE_INDEX, OCC3D
+from occkit.classes import IGNORE_INDEX
 from occkit.geometry.camera import project_points
 from occkit.geometry.grid import OCC3D_GRID, VoxelGrid
 from occkit.geometry.se3 import invert_transform, transform_points
+from occkit.label_space import OCC3D_SPACE, LabelSpace
 from occkit.types import Sample
 from occkit.viz.figure import new_figure
 from occkit.viz.palette import add_class_legend, class_colors
@@ -115,12 +116,17 @@ def lidar_points_in_ego(sample: Sample) -> Tensor:
     return transform_points(sample.lidar2ego.double(), lidar).float()
 
 
-def voxel_centres_in_ego(index: np.ndarray, occ_aug: Tensor | None = None, grid: VoxelGrid = OCC3D_GRID) -> Tensor:
-    """``(V, 3)`` float32 CPU ego-frame centres of voxels ``index`` (``(V, 3)`` int), undoing ``occ_aug`` if given."""
+def voxel_centres_in_ego(index: np.ndarray, occ_aug: Tensor | None = None, grid: VoxelGrid = OCC3D_GRID,
+                         label2ego: Tensor | None = None) -> Tensor:
+    """``(V, 3)`` float32 CPU ego-frame centres of voxels ``index`` (``(V, 3)`` int) of ``grid``: ``occ_aug`` (the
+    augmentation in the labels' frame) undone if given, then ``label2ego`` ``(4, 4)`` applied if the labels live in
+    another frame than the ego frame (SurroundOcc: the sample's ``lidar2ego``)."""
     lower, size = grid.lower_tensor(dtype=torch.float64), grid.size_tensor(dtype=torch.float64)
     centres = (torch.from_numpy(np.asarray(index)).double() + 0.5) * size + lower  # (V, 3)
     if occ_aug is not None:
         centres = transform_points(torch.linalg.inv(occ_aug.detach().cpu().double()), centres)
+    if label2ego is not None:
+        centres = transform_points(label2ego.detach().cpu().double(), centres)
     return centres.float()
 
 
@@ -208,7 +214,8 @@ def occupancy_camera_figure(
     semantics: np.ndarray,
     mask: np.ndarray | None = None,
     occ_aug: Tensor | None = None,
-    grid: VoxelGrid = OCC3D_GRID,
+    space: LabelSpace = OCC3D_SPACE,
+    label2ego: Tensor | None = None,
     alpha: float = 0.5,
     marker_scale: float = 0.75,
     title: str = "",
@@ -221,23 +228,29 @@ def occupancy_camera_figure(
 
     Args:
         cameras: images and matrices.
-        semantics: ``(X, Y, Z)`` Occ3D labels (ground truth or prediction) in the occupancy frame.
+        semantics: ``(X, Y, Z)`` labels of ``space`` (ground truth or prediction) in the occupancy frame.
         mask: optional ``(X, Y, Z)`` visibility mask; only the voxels it keeps are drawn.
-        occ_aug: the sample's ego -> occupancy-frame augmentation, undone before projecting (identity if None).
-        grid: the grid of ``semantics``.
+        occ_aug: the sample's augmentation in the labels' frame, undone before projecting (identity if None).
+        space: the label space of ``semantics`` (grid, free class, colours).
+        label2ego: ``(4, 4)`` labels' frame -> ego frame when ``space`` is not in the ego frame (SurroundOcc's
+            LiDAR frame: the sample's ``lidar2ego``).
         alpha: marker opacity.
         marker_scale: marker width over the voxel's apparent width.
         title: figure title.
     """
     semantics = np.asarray(semantics)
-    drawn = (semantics != OCC3D.empty_index) & (semantics != IGNORE_INDEX)
+    if (space.frame == "ego") != (label2ego is None):
+        raise ValueError(f"{space.name} labels live in the {space.frame} frame: give label2ego exactly when that is "
+                         "not the ego frame")  # fmt: skip
+    grid = space.grid
+    drawn = (semantics != space.free_index) & (semantics != IGNORE_INDEX)
     if mask is not None:
         drawn &= np.asarray(mask, dtype=bool)
     index = np.argwhere(drawn)  # (V, 3)
     classes = semantics[tuple(index.T)]
     figure, axes = camera_figure(cameras, title, legend_height=0.5)
-    uv, depth, valid = cameras.project(voxel_centres_in_ego(index, occ_aug, grid))
-    colors = class_colors(classes) / 255.0  # (V, 3)
+    uv, depth, valid = cameras.project(voxel_centres_in_ego(index, occ_aug, grid, label2ego))
+    colors = class_colors(classes, space.taxonomy) / 255.0  # (V, 3)
     voxel = float(np.mean(grid.voxel_size))
     focal, per_pixel = cameras.focal_scale(), _points_per_pixel(cameras)
     largest = cameras.image_size[1] / 8
@@ -248,6 +261,7 @@ def occupancy_camera_figure(
         _draw_far_to_near(axis, uv[i, keep], depth[i, keep], colors[keep], (side_px * per_pixel) ** 2, alpha, "s")
     legend_axis = next(iter(axes.values()), None)
     if legend_axis is not None:
-        add_class_legend(legend_axis, np.unique(classes), loc="lower center", ncol=9, fontsize=7,
+        add_class_legend(legend_axis, np.unique(classes), taxonomy=space.taxonomy, loc="lower center", ncol=9,
+                         fontsize=7,
                          bbox_to_anchor=(0.5, 0.02), bbox_transform=figure.transFigure)  # fmt: skip
     return figure

@@ -16,7 +16,7 @@ from matplotlib.figure import Figure
 from matplotlib.patches import Patch
 
 from occkit.classes import IGNORE_INDEX, OCC3D
-from occkit.geometry.grid import OCC3D_GRID, VoxelGrid
+from occkit.label_space import OCC3D_SPACE, LabelSpace
 from occkit.metrics.confusion import OccupancyMetric
 from occkit.viz.bev import bev_image, bev_view, draw_bev, top_occupied
 from occkit.viz.figure import new_figure
@@ -111,9 +111,12 @@ def error_image(columns: np.ndarray) -> np.ndarray:
     return bev_view(np.array(OUTCOME_COLORS, dtype=np.uint8)[columns])
 
 
-def frame_scores(gt: np.ndarray, pred: np.ndarray, mask: np.ndarray | None = None) -> dict[str, float | None]:
-    """``miou`` and ``iou`` of one frame with the Occ3D metric, under ``mask`` when given; None where undefined."""
-    metric = OccupancyMetric(mask="camera" if mask is not None else None)
+def frame_scores(
+    gt: np.ndarray, pred: np.ndarray, mask: np.ndarray | None = None, space: LabelSpace = OCC3D_SPACE
+) -> dict[str, float | None]:
+    """``miou`` and ``iou`` of one frame with the metric of ``space``, under the camera ``mask`` when given; None
+    where undefined."""
+    metric = OccupancyMetric.for_space(space, mask="camera" if mask is not None else None)
     metric.update(gt, pred, mask_camera=mask)
     scores = metric.compute()
     return {key: None if math.isnan(scores[key]) else float(scores[key]) for key in ("miou", "iou")}
@@ -129,7 +132,7 @@ def comparison_figure(
     gt: np.ndarray,
     pred: np.ndarray,
     mask: np.ndarray | None = None,
-    grid: VoxelGrid = OCC3D_GRID,
+    space: LabelSpace = OCC3D_SPACE,
     title: str = "",
     pred_name: str = "prediction",
     shade: float = 0.25,
@@ -141,24 +144,27 @@ def comparison_figure(
         pred: ``(X, Y, Z)`` predicted labels.
         mask: optional ``(X, Y, Z)`` mask (``mask_camera``: the official Occ3D setting); the BEV maps, the error map
             and the scores all use it.
-        grid: the grid of the labels (extents in metres).
+        space: the label space of both (grid extents in metres, frame, classes, colours, metric).
         title: first line of the title (e.g. the sample token).
         pred_name: caption of the prediction panel.
         shade: see :func:`~occkit.viz.bev.bev_image`.
     """
-    scores = frame_scores(gt, pred, mask)
+    scores = frame_scores(gt, pred, mask, space)
+    grid, frame, free = space.grid, space.frame, space.free_index
     figure = new_figure(13.0, 4.3, layout="constrained")
     axes = figure.subplots(1, 3)
-    draw_bev(axes[0], bev_image(gt, mask, shade=shade), grid, "ground truth")
-    draw_bev(axes[1], bev_image(pred, mask, shade=shade), grid, pred_name)
-    draw_bev(axes[2], error_image(column_outcomes(voxel_outcomes(gt, pred, mask))), grid, "errors (per column)")
+    draw_bev(axes[0], bev_image(gt, mask, space.taxonomy, shade), grid, "ground truth", frame)
+    draw_bev(axes[1], bev_image(pred, mask, space.taxonomy, shade), grid, pred_name, frame)
+    errors = error_image(column_outcomes(voxel_outcomes(gt, pred, mask, free)))
+    draw_bev(axes[2], errors, grid, "errors (per column)", frame)
     error_handles = [Patch(facecolor=np.array(OUTCOME_COLORS[code]) / 255, edgecolor="0.4", linewidth=0.5,
                            label=OUTCOME_NAMES[code])
                      for code in (CORRECT, WRONG_CLASS, MISSED, FALSE_POSITIVE, TRUE_FREE, NOT_EVALUATED)]  # fmt: skip
     axes[2].legend(handles=error_handles, loc="upper left", bbox_to_anchor=(1.02, 1.0), fontsize=7, frameon=False,
                    handlelength=1.2, borderaxespad=0.0)  # fmt: skip
-    classes = np.union1d(np.unique(top_occupied(gt, mask)[0]), np.unique(top_occupied(pred, mask)[0]))
-    add_class_legend(axes[1], classes, loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=5)
+    classes = np.union1d(np.unique(top_occupied(gt, mask, free)[0]), np.unique(top_occupied(pred, mask, free)[0]))
+    add_class_legend(axes[1], classes, taxonomy=space.taxonomy, loc="upper center", bbox_to_anchor=(0.5, -0.16),
+                     ncol=5)  # fmt: skip
     setting = "camera mask" if mask is not None else "no mask"
     figure.suptitle(f"{title + ': ' if title else ''}{format_scores(scores)} (this frame, {setting})", fontsize=9)
     return figure

@@ -24,6 +24,7 @@ from occkit.data.dataset import CAMERAS, DatasetConfig, OccupancyDataset
 from occkit.data.index import FrameRecord
 from occkit.data.names import path_under, safe_name
 from occkit.data.transforms import ImageAugConfig, augment_image, sample_image_aug
+from occkit.label_space import LabelSpace, label_space
 from occkit.types import Sample
 from occkit.viz.bev import bev_figure
 from occkit.viz.cameras import CameraSet, lidar_camera_figure, lidar_points_in_ego, occupancy_camera_figure
@@ -59,9 +60,12 @@ class VizConfig:
     tokens: tuple[str, ...] = ()
     """Sample tokens to render instead of spread frames."""
     pred: str | None = None
-    """Folder of Occ3D ``<token>.npz`` predictions (as ``occkit predict`` writes them)."""
+    """Folder of ``<token>.npz`` predictions (as ``occkit predict`` writes them)."""
     ckpt: str | None = None
     """Checkpoint to predict with on the fly instead of ``pred``."""
+    label_space: str | None = None
+    """Label space of the ground truth and predictions (:mod:`occkit.label_space`); None: the checkpoint's, or
+    ``occ3d``. A checkpoint of another label space is refused."""
     device: str = "cpu"
     """Where the checkpoint's model runs."""
     sweeps: int = 0
@@ -124,7 +128,7 @@ def _camera_set(dataset: OccupancyDataset, record: FrameRecord, sample: Sample) 
     return CameraSet.from_sample(sample, dataset.config.cameras, np.stack(images))
 
 
-def _folder_predictor(folder: Path, tokens: list[str]) -> Predictor:
+def _folder_predictor(folder: Path, tokens: list[str], space: LabelSpace) -> Predictor:
     from occkit.metrics.evaluate import read_prediction
 
     if not folder.is_dir():
@@ -134,16 +138,20 @@ def _folder_predictor(folder: Path, tokens: list[str]) -> Predictor:
     for token, path in files.items():
         if not path.is_file():
             raise FileNotFoundError(f"no prediction for sample {token}: {path} not found")
-    return lambda token: read_prediction(files[token])
+    return lambda token: read_prediction(files[token], space)
 
 
-def _checkpoint_predictor(config: VizConfig) -> Predictor:
+def _checkpoint_predictor(config: VizConfig) -> tuple[Predictor, LabelSpace]:
+    """The checkpoint's predictions by token, and its label space."""
     from occkit.data.collate import collate
     from occkit.engine.evaluate import evaluation_dataset, load_trained
 
     if not Path(config.ckpt).is_file():
         raise FileNotFoundError(f"checkpoint {config.ckpt} does not exist")
     model, experiment = load_trained(config.ckpt, config.device)
+    space = label_space(experiment.data.label_space)
+    if config.label_space is not None and config.label_space != space.name:
+        raise ValueError(f"checkpoint {config.ckpt} predicts {space.name} labels, not {config.label_space}")
     experiment = dataclasses.replace(experiment, data=dataclasses.replace(experiment.data, version=config.version))
     dataset = evaluation_dataset(experiment, config.data, config.split, labels=False)
     position = {record.token: i for i, record in enumerate(dataset.records)}
@@ -153,40 +161,46 @@ def _checkpoint_predictor(config: VizConfig) -> Predictor:
         batch = collate([dataset[position[token]]]).to(config.device)
         return model.predict(batch).semantics[0].cpu().numpy()
 
-    return predict
+    return predict, space
 
 
 def _views(
-    sample: Sample, cameras: CameraSet | None, pred: np.ndarray | None, pred_name: str, title: str
+    sample: Sample, cameras: CameraSet | None, pred: np.ndarray | None, pred_name: str, title: str, space: LabelSpace
 ) -> list[tuple[str, str, Callable[[], Figure]]]:
     """``(file stem, caption, figure factory)`` of every view the frame has data for."""
     gt = None if sample.voxel_semantics is None else sample.voxel_semantics.numpy()
     mask = None if sample.mask_camera is None else sample.mask_camera.numpy()
+    orientation = "forward up, left on the left" if space.frame == "ego" else f"the {space.frame} frame's x up"
+    visible, under = ("camera-visible voxels", "under the camera mask") if mask is not None else ("all voxels", "")
     views = []
     if gt is not None:
-        views.append(("bev_gt", "Ground truth, bird's-eye view: class of the top-most occupied voxel, forward up, "
-                      "left on the left; left panel all labels, right panel the camera-visible voxels.",
-                      partial(bev_figure, gt, mask, title=f"{title}: ground truth")))  # fmt: skip
-        views.append(("voxels_gt", "Ground truth in 3D (camera-visible voxels), seen from behind and above the ego "
-                      "car (black box).", partial(voxel_figure, gt, mask, title=f"{title}: ground truth")))  # fmt: skip
+        panels = "; left panel all labels, right panel the camera-visible voxels" if mask is not None else ""
+        views.append(("bev_gt", f"Ground truth, bird's-eye view: class of the top-most occupied voxel, "
+                      f"{orientation}{panels}.",
+                      partial(bev_figure, gt, mask, space, title=f"{title}: ground truth")))  # fmt: skip
+        car = ", seen from behind and above the ego car (black box)" if space.frame == "ego" else ""
+        views.append(("voxels_gt", f"Ground truth in 3D ({visible}){car}.",
+                      partial(voxel_figure, gt, mask, space, title=f"{title}: ground truth")))  # fmt: skip
     if pred is not None and gt is not None:
-        views.append(("compare", f"Ground truth, {pred_name} and the error map under the camera mask, with the "
-                      "frame's mIoU and IoU.", partial(comparison_figure, gt, pred, mask, title=title,
-                                                      pred_name=pred_name)))  # fmt: skip
+        views.append(("compare", f"Ground truth, {pred_name} and the error map {under}, with the frame's mIoU and "
+                      "IoU.", partial(comparison_figure, gt, pred, mask, space, title=title,
+                                      pred_name=pred_name)))  # fmt: skip
     if pred is not None:
         seen = " (the voxels the cameras see in the ground truth)" if mask is not None else ""
         views.append(("voxels_pred", f"{pred_name} in 3D{seen}.",
-                      partial(voxel_figure, pred, mask, title=f"{title}: {pred_name}")))  # fmt: skip
+                      partial(voxel_figure, pred, mask, space, title=f"{title}: {pred_name}")))  # fmt: skip
     if cameras is None:
         return views
     if sample.points is not None:
         points = lidar_points_in_ego(sample)
         views.append(("cameras_lidar", "Surround cameras with the LiDAR points projected, coloured by depth.",
                       partial(lidar_camera_figure, cameras, points, title=f"{title}: LiDAR")))  # fmt: skip
+    # The labels' own augmentation and frame: ego (Occ3D: occ_aug) or LiDAR (SurroundOcc: bev_aug, then lidar2ego).
+    label_frame = (sample.occ_aug, space, None) if space.frame == "ego" else (sample.bev_aug, space, sample.lidar2ego)
     for stem, grid, what in (("cameras_gt", gt, "ground truth"), ("cameras_pred", pred, pred_name)):
         if grid is not None:
             views.append((stem, f"Surround cameras with the {what}'s occupied voxels projected, coloured by class.",
-                          partial(occupancy_camera_figure, cameras, grid, mask, sample.occ_aug,
+                          partial(occupancy_camera_figure, cameras, grid, mask, *label_frame,
                                   title=f"{title}: {what} voxels")))  # fmt: skip
     return views
 
@@ -200,7 +214,8 @@ def _render_frame(
     pred = None if predict is None else predict(record.token)
     cameras = _camera_set(dataset, record, sample) if dataset.config.cameras else None
     images, files = [], {}
-    for stem, caption, draw in _views(sample, cameras, pred, pred_name, f"{record.scene} / {record.token}"):
+    title = f"{record.scene} / {record.token}"
+    for stem, caption, draw in _views(sample, cameras, pred, pred_name, title, dataset.space):
         folder = path_under(config.out, safe_name(record.token, "sample token"), f"--out {config.out}")
         path = save_figure(draw(), folder / f"{stem}.png", config.dpi, config.colors)
         files[stem] = f"{record.token}/{path.name}"
@@ -208,7 +223,7 @@ def _render_frame(
     entry = {"token": record.token, "scene": record.scene, "files": files}
     if pred is not None and sample.voxel_semantics is not None:
         mask = None if sample.mask_camera is None else sample.mask_camera.numpy()
-        entry["scores"] = frame_scores(sample.voxel_semantics.numpy(), pred, mask)
+        entry["scores"] = frame_scores(sample.voxel_semantics.numpy(), pred, mask, dataset.space)
     return images, entry
 
 
@@ -226,29 +241,35 @@ def render_frames(config: VizConfig, progress: Callable[[str], None] = print) ->
     root = Path(config.data)
     if not root.is_dir():
         raise FileNotFoundError(f"data root {root} does not exist")
-    common = {"root": str(root), "version": config.version, "split": config.split, "boxes": False}
-    records = OccupancyDataset(DatasetConfig(**common, cameras=(), sweeps=-1, occupancy=False)).records
+    # Predictions are named after their folder, or the run folder of the checkpoint (e.g. runs/demo/daocc_tiny).
+    predict, pred_name, space = None, "prediction", label_space(config.label_space or "occ3d")
+    if config.ckpt is not None:
+        (predict, space), pred_name = _checkpoint_predictor(config), \
+            f"prediction ({Path(config.ckpt).resolve().parent.name})"  # fmt: skip
+    common = {"root": str(root), "version": config.version, "split": config.split, "boxes": False,
+              "label_space": space.name}  # fmt: skip
+    listing = OccupancyDataset(DatasetConfig(**common, cameras=(), sweeps=-1, occupancy=False))
+    records = listing.records
     picks = _pick(records, config)
     cameras = tuple(name for name in CAMERAS if name in records[0].cameras)
     image_aug = _display_transform(root / records[0].cameras[cameras[0]].path, config.display_width) if cameras \
         else ImageAugConfig()  # fmt: skip
-    labelled = all(records[i].occ_path is not None for i in picks)
+    labelled = all(listing.label_path(records[i]).is_file() for i in picks)
     dataset = OccupancyDataset(DatasetConfig(**common, cameras=cameras, sweeps=config.sweeps, occupancy=labelled,
                                              image_aug=image_aug))  # fmt: skip
-    tokens = [records[i].token for i in picks]
-    # Predictions are named after their folder, or the run folder of the checkpoint (e.g. runs/demo/daocc_tiny).
-    predict, pred_name = None, "prediction"
     if config.pred is not None:
-        predict, pred_name = _folder_predictor(Path(config.pred), tokens), f"prediction ({Path(config.pred).name})"
-    elif config.ckpt is not None:
-        predict, pred_name = _checkpoint_predictor(config), f"prediction ({Path(config.ckpt).resolve().parent.name})"
+        tokens = [records[i].token for i in picks]
+        predict = _folder_predictor(Path(config.pred), tokens, space)
+        pred_name = f"prediction ({Path(config.pred).name})"
     if not labelled and predict is None:
-        raise ValueError(f"{root}: the chosen frames of split {config.split!r} have no Occ3D labels; give predictions")
+        raise ValueError(f"{root}: the chosen frames of split {config.split!r} have no {space.name} labels; give "
+                         "predictions")  # fmt: skip
     sections, frames = [], []
     for number, index in enumerate(picks, start=1):
         images, entry = _render_frame(dataset, index, predict, pred_name, config)
         scores = entry.get("scores")
-        text = "" if scores is None else f"This frame: {format_scores(scores)} (camera mask)."
+        setting = "camera mask" if dataset.config.label_space == "occ3d" else "every voxel"
+        text = "" if scores is None else f"This frame: {format_scores(scores)} ({setting})."
         sections.append(Section(f"{entry['scene']} / {entry['token']}", text, tuple(images)))
         frames.append(entry)
         progress(f"[viz] {number}/{len(picks)} {entry['token']}: {len(images)} images")

@@ -18,8 +18,8 @@ from matplotlib.figure import Figure
 from mpl_toolkits.mplot3d import Axes3D
 from mpl_toolkits.mplot3d.art3d import Poly3DCollection
 
-from occkit.classes import IGNORE_INDEX, OCC3D
-from occkit.geometry.grid import OCC3D_GRID, VoxelGrid
+from occkit.classes import IGNORE_INDEX
+from occkit.label_space import OCC3D_SPACE, LabelSpace
 from occkit.viz.bev import EGO_BOX
 from occkit.viz.figure import new_figure
 from occkit.viz.palette import add_class_legend, class_colors
@@ -100,40 +100,43 @@ def draw_voxels(
     axis: Axes3D,
     semantics: np.ndarray,
     mask: np.ndarray | None = None,
-    grid: VoxelGrid = OCC3D_GRID,
+    space: LabelSpace = OCC3D_SPACE,
     elevation_deg: float = 32.0,
     azimuth_deg: float = 195.0,
     zoom: float = 1.5,
-    free_index: int = OCC3D.empty_index,
 ) -> int:
     """Draw the occupied voxels of a label grid on a 3D axis, lit, with the ego car as a black box.
 
     Args:
         axis: a ``projection="3d"`` axis; its view is set here (orthographic, ``view_init(elevation, azimuth)``;
             azimuth 180 looks forward from straight behind the car).
-        semantics: ``(X, Y, Z)`` Occ3D labels, ego frame.
+        semantics: ``(X, Y, Z)`` labels of ``space``.
         mask: optional ``(X, Y, Z)`` visibility mask; only the voxels it keeps are drawn.
-        grid: the grid of ``semantics`` (voxel size and origin in metres).
+        space: the label space of ``semantics`` (voxel size and origin in metres, classes, colours); the ego car is
+            drawn when its frame is the ego frame.
         zoom: scale of the grid's box in the axes.
 
     Returns:
-        the number of faces drawn (the car's six included).
+        the number of faces drawn (the car's six included when drawn).
     """
+    grid = space.grid
     semantics = np.asarray(semantics)
-    drawn = (semantics != free_index) & (semantics != IGNORE_INDEX)
+    drawn = (semantics != space.free_index) & (semantics != IGNORE_INDEX)
     if mask is not None:
         drawn &= np.asarray(mask, dtype=bool)
     towards_viewer = view_direction(elevation_deg, azimuth_deg)
     voxels, corners, normals = voxel_faces(drawn, towards_viewer)
     size, lower = np.array(grid.voxel_size), np.array(grid.lower)
-    colors = _lit(class_colors(semantics[tuple(voxels.T)]).astype(np.float64), normals)  # (F, 3)
-    ego_normals = np.array(list(_FACES), dtype=np.float64)  # (6, 3)
-    ego_colors = _lit(np.full((6, 3), EGO_COLOR, dtype=np.float64), ego_normals)
-    # One collection, so that matplotlib depth-sorts the ego car's faces among the voxels' faces (separate
-    # collections are only sorted as wholes, which would hide the car under the road or draw it over objects).
-    corners = np.concatenate((corners * size + lower, _ego_faces()))  # (F + 6, 4, 3) metres
-    colors = np.concatenate((colors, ego_colors))
-    edges = np.concatenate((colors[:-6] * 0.8, np.ones((6, 3))))  # darker voxel edges, white car edges
+    colors = _lit(class_colors(semantics[tuple(voxels.T)], space.taxonomy).astype(np.float64), normals)  # (F, 3)
+    corners, edges = corners * size + lower, colors * 0.8  # (F, 4, 3) metres; darker voxel edges
+    if space.frame == "ego":
+        ego_normals = np.array(list(_FACES), dtype=np.float64)  # (6, 3)
+        ego_colors = _lit(np.full((6, 3), EGO_COLOR, dtype=np.float64), ego_normals)
+        # One collection, so that matplotlib depth-sorts the ego car's faces among the voxels' faces (separate
+        # collections are only sorted as wholes, which would hide the car under the road or draw it over objects).
+        corners = np.concatenate((corners, _ego_faces()))  # (F + 6, 4, 3)
+        colors = np.concatenate((colors, ego_colors))
+        edges = np.concatenate((edges, np.ones((6, 3))))  # white car edges
     axis.add_collection3d(Poly3DCollection(corners, facecolors=colors, edgecolors=edges, linewidths=0.1))
     (x_min, y_min, z_min), (x_max, y_max, z_max) = grid.lower, grid.upper
     axis.set(xlim=(x_min, x_max), ylim=(y_min, y_max), zlim=(z_min, z_max))
@@ -148,7 +151,7 @@ def draw_voxels(
 def voxel_figure(
     semantics: np.ndarray,
     mask: np.ndarray | None = None,
-    grid: VoxelGrid = OCC3D_GRID,
+    space: LabelSpace = OCC3D_SPACE,
     title: str = "",
     elevation_deg: float = 32.0,
     azimuth_deg: float = 195.0,
@@ -156,9 +159,10 @@ def voxel_figure(
     """One frame's occupied voxels in 3D with a class legend; see :func:`draw_voxels`."""
     figure = new_figure(8.0, 4.6)
     axis = figure.add_axes((-0.02, -0.05, 0.82, 1.0), projection="3d")
-    draw_voxels(axis, semantics, mask, grid, elevation_deg, azimuth_deg)
+    draw_voxels(axis, semantics, mask, space, elevation_deg, azimuth_deg)
     drawn = np.asarray(semantics) if mask is None else np.asarray(semantics)[np.asarray(mask, dtype=bool)]
-    add_class_legend(axis, np.unique(drawn), [("ego car", EGO_COLOR)], bbox_to_anchor=(1.0, 0.85))
+    extra = [("ego car", EGO_COLOR)] if space.frame == "ego" else []
+    add_class_legend(axis, np.unique(drawn), extra, space.taxonomy, bbox_to_anchor=(1.0, 0.85))
     if title:
         figure.suptitle(title, fontsize=9)
     return figure

@@ -13,6 +13,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor, nn
 
+from occkit.classes import OCC3D
 from occkit.losses import (
     class_weights_from_frequencies,
     drop_free_cross_entropy,
@@ -40,9 +41,9 @@ class OccupancyHeadConfig:
     """Channels after the conv3x3; the MLP's hidden layer has twice as many."""
     height: int = 16
     """Voxels per column (Z)."""
-    num_classes: int = 18
+    num_classes: int = OCC3D.num_classes
     """Classes, free space included (Occ3D: 18, free = 17; SurroundOcc: 17, empty = 0)."""
-    free_index: int = 17
+    free_index: int = OCC3D.empty_index
     """Class id of free/empty space."""
     use_mask: bool = True
     """Cross-entropy over the camera-visible voxels only (``mask_camera``); False: drop-free CE over all voxels."""
