@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import math
 
 import pytest
@@ -109,6 +110,17 @@ def fit_batch(model: torch.nn.Module, batch: Batch, steps: int = 20, lr: float =
 def parameters_without_gradient(model: torch.nn.Module) -> list[str]:
     """Names of trainable parameters whose gradient is missing or all zero after a backward pass."""
     return [n for n, p in model.named_parameters() if p.requires_grad and (p.grad is None or not p.grad.any())]
+
+
+@contextlib.contextmanager
+def torch_threads(count: int):
+    """Run the block with ``count`` intra-op threads, then restore the previous count."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(count)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
 
 
 @pytest.fixture

@@ -512,7 +512,7 @@ def _rename_sample(folder: Path, old: str, new: str) -> None:
         _rename(folder, "scene", field, old, new)
 
 
-@pytest.mark.parametrize("token", ["../../escape_tok", "/tmp/escape_tok", "", ".hidden", "a" * 129, "a/b", "tok\n"])
+@pytest.mark.parametrize("token", ["../../escape_tok", "/escape_tok", "", ".hidden", "a" * 129, "a/b", "tok\n"])
 def test_unsafe_sample_tokens_are_refused_at_build(tables_copy, records, token):
     _rename_sample(tables_copy, records[4].token, token)
     with pytest.raises(TableError, match=r"^v1\.0-synth/sample\.json: record '.*\.token: .* is not a safe name"):

@@ -8,11 +8,9 @@ model runs that kernel with repeated indices again.
 
 from __future__ import annotations
 
-import contextlib
-
 import pytest
 import torch
-from conftest import make_batch
+from conftest import make_batch, torch_threads
 from torch.utils._python_dispatch import TorchDispatchMode
 
 from occkit import zoo
@@ -26,16 +24,6 @@ TINY_BATCHES = {
     "daocc_tiny": dict(image_size=(64, 176)),
     "da_occ_tiny": dict(image_size=(128, 352), depth_stride=16),
 }
-
-
-@contextlib.contextmanager
-def _threads(count: int):
-    before = torch.get_num_threads()
-    torch.set_num_threads(count)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(before)
 
 
 def _has_repeats(indices) -> bool:
@@ -83,13 +71,13 @@ def test_take_is_advanced_indexing_with_the_same_gradient(dim):
     torch.testing.assert_close(mine, reference)
 
 
-def test_take_gradient_repeats_bitwise_with_two_threads():
+def test_take_gradient_repeats_bitwise_with_twotorch_threads():
     """Sizes above the kernels' parallel grain (32768 elements), every row read about 60 times."""
     generator = torch.Generator().manual_seed(0)
     source = torch.randn(1000, 16, requires_grad=True)
     index = torch.randint(0, 1000, (60_000,), generator=generator)
     gradient = torch.randn(60_000, 16, generator=generator)
-    with _threads(2):
+    with torch_threads(2):
         first = torch.autograd.grad(take(source, index), source, gradient)[0]
         for _ in range(5):
             assert torch.equal(torch.autograd.grad(take(source, index), source, gradient)[0], first)
@@ -114,18 +102,18 @@ def test_no_racing_accumulation_in_a_training_step_of_a_tiny_model(name):
     torch.manual_seed(0)
     model = zoo.build(name).train()
     batch = make_batch(batch_size=1, **TINY_BATCHES[name])
-    with _threads(1), _RacingAccumulations() as guard:  # what runs, not how: one thread is enough, and quicker
+    with torch_threads(1), _RacingAccumulations() as guard:  # what runs, not how: one thread is enough, and quicker
         _gradients(model, batch)
     assert guard.found == [], f"index_put(accumulate=True) with repeated indices into tensors of shape {guard.found}"
 
 
-def test_da_occ_tiny_gradients_repeat_bitwise_with_two_threads():
+def test_da_occ_tiny_gradients_repeat_bitwise_with_twotorch_threads():
     """The model whose gradients differed between two identical passes in 4 of 4 tries before the fix."""
     torch.manual_seed(0)
     model = zoo.build("da_occ_tiny").train()
     batch = make_batch(batch_size=1, **TINY_BATCHES["da_occ_tiny"])
     initial = {k: v.clone() for k, v in model.state_dict().items()}
-    with _threads(2):
+    with torch_threads(2):
         first = _gradients(model, batch)
         model.load_state_dict(initial)  # the train-mode pass moved the BatchNorm statistics
         second = _gradients(model, batch)

@@ -34,6 +34,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from conftest import torch_threads
 
 from occkit.engine.checkpoint import atomic_save, latest_checkpoint, load_checkpoint, save_checkpoint
 from occkit.engine.train import lr_factor
@@ -177,19 +178,9 @@ def _without_speed(rows: list[dict]) -> list[dict]:
 
 
 # ------------------------------------------------------------------------------------------------------ fixtures
-@contextlib.contextmanager
-def _threads(count: int):
-    before = torch.get_num_threads()
-    torch.set_num_threads(count)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(before)
-
-
 @pytest.fixture(scope="module", autouse=True)
 def _tests_on_one_thread():
-    with _threads(1):
+    with torch_threads(1):
         yield
 
 
@@ -354,7 +345,7 @@ def test_resume_auto_after_a_kill_before_the_first_checkpoint_starts_afresh(data
         if step == 2:
             raise Killed
 
-    with _threads(BITWISE_THREADS):  # the logged losses of both attempts are compared bitwise
+    with torch_threads(BITWISE_THREADS):  # the logged losses of both attempts are compared bitwise
         with pytest.raises(Killed):  # steps 1 and 2 logged; the first checkpoint would come at step 3
             train(experiment, out, progress=False, device="cpu", on_step=kill_at_step_two)
         first_attempt = _rows(out / "log.jsonl")
@@ -417,7 +408,7 @@ def ddp(data, tmp_path_factory) -> dict:
     seconds["train, 1 process"] = time.perf_counter() - started
     evaluate = ["eval", "--ckpt", folder / "two" / "best.pt", "--data", data, "--workers", "0", "--device", "cpu"]
     started = time.perf_counter()
-    with _threads(1):  # one process: this one, on one thread as the subprocesses
+    with torch_threads(1):  # one process: this one, on one thread as the subprocesses
         assert main([str(arg) for arg in (*evaluate, "--out", folder / "eval-one", "--save-predictions")]) == 0
     seconds["eval, 1 process"] = time.perf_counter() - started
     started = time.perf_counter()

@@ -118,11 +118,11 @@ def draw_ego(axis: Axes, color: str = "black") -> None:
                   arrowprops={"arrowstyle": "-|>", "color": color, "linewidth": 0.8})  # fmt: skip
 
 
-def draw_bev(axis: Axes, image: np.ndarray, grid: VoxelGrid = OCC3D_GRID, title: str | None = None,
-             frame: str = "ego") -> None:
-    """Show a :func:`bev_view` image in metres: in the ego frame forward up, left on the left, the ego car marked;
-    in the LiDAR frame (``frame="lidar"``) its +x up, its +y on the left, the sensor's origin marked."""
-    axis.imshow(image, extent=bev_extent(grid), interpolation="nearest")
+def draw_bev(axis: Axes, image: np.ndarray, space: LabelSpace = OCC3D_SPACE, title: str | None = None) -> None:
+    """Show a :func:`bev_view` image of ``space``'s grid in metres: in the ego frame forward up, left on the left,
+    the ego car marked; in the LiDAR frame its +x up, its +y on the left, the sensor's origin marked."""
+    frame = space.frame
+    axis.imshow(image, extent=bev_extent(space.grid), interpolation="nearest")
     if frame == "ego":
         draw_ego(axis)
         axis.set_xlabel("y (m), left +", fontsize=7)
@@ -156,7 +156,7 @@ def bev_figure(
     figure = new_figure(3.6 * len(panels) + 1.6, 3.9, layout="constrained")
     axes = figure.subplots(1, len(panels), squeeze=False)[0]
     for axis, (name, panel_mask) in zip(axes, panels, strict=True):
-        draw_bev(axis, bev_image(semantics, panel_mask, space.taxonomy, shade), space.grid, name, space.frame)
+        draw_bev(axis, bev_image(semantics, panel_mask, space.taxonomy, shade), space, name)
     present = np.unique(top_occupied(semantics, free_index=space.free_index)[0])
     extra = [("no occupied voxel", EMPTY_COLOR)] + ([("not observed", UNOBSERVED_COLOR)] if mask is not None else [])
     add_class_legend(axes[-1], present, extra, space.taxonomy)

@@ -262,6 +262,5 @@ def occupancy_camera_figure(
     legend_axis = next(iter(axes.values()), None)
     if legend_axis is not None:
         add_class_legend(legend_axis, np.unique(classes), taxonomy=space.taxonomy, loc="lower center", ncol=9,
-                         fontsize=7,
-                         bbox_to_anchor=(0.5, 0.02), bbox_transform=figure.transFigure)  # fmt: skip
+                         fontsize=7, bbox_to_anchor=(0.5, 0.02), bbox_transform=figure.transFigure)  # fmt: skip
     return figure

@@ -150,13 +150,13 @@ def comparison_figure(
         shade: see :func:`~occkit.viz.bev.bev_image`.
     """
     scores = frame_scores(gt, pred, mask, space)
-    grid, frame, free = space.grid, space.frame, space.free_index
+    free = space.free_index
     figure = new_figure(13.0, 4.3, layout="constrained")
     axes = figure.subplots(1, 3)
-    draw_bev(axes[0], bev_image(gt, mask, space.taxonomy, shade), grid, "ground truth", frame)
-    draw_bev(axes[1], bev_image(pred, mask, space.taxonomy, shade), grid, pred_name, frame)
+    draw_bev(axes[0], bev_image(gt, mask, space.taxonomy, shade), space, "ground truth")
+    draw_bev(axes[1], bev_image(pred, mask, space.taxonomy, shade), space, pred_name)
     errors = error_image(column_outcomes(voxel_outcomes(gt, pred, mask, free)))
-    draw_bev(axes[2], errors, grid, "errors (per column)", frame)
+    draw_bev(axes[2], errors, space, "errors (per column)")
     error_handles = [Patch(facecolor=np.array(OUTCOME_COLORS[code]) / 255, edgecolor="0.4", linewidth=0.5,
                            label=OUTCOME_NAMES[code])
                      for code in (CORRECT, WRONG_CLASS, MISSED, FALSE_POSITIVE, TRUE_FREE, NOT_EVALUATED)]  # fmt: skip

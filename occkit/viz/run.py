@@ -224,6 +224,7 @@ def _render_frame(
     if pred is not None and sample.voxel_semantics is not None:
         mask = None if sample.mask_camera is None else sample.mask_camera.numpy()
         entry["scores"] = frame_scores(sample.voxel_semantics.numpy(), pred, mask, dataset.space)
+        entry["scored_under"] = "camera mask" if mask is not None else "every voxel"
     return images, entry
 
 
@@ -268,8 +269,7 @@ def render_frames(config: VizConfig, progress: Callable[[str], None] = print) ->
     for number, index in enumerate(picks, start=1):
         images, entry = _render_frame(dataset, index, predict, pred_name, config)
         scores = entry.get("scores")
-        setting = "camera mask" if dataset.config.label_space == "occ3d" else "every voxel"
-        text = "" if scores is None else f"This frame: {format_scores(scores)} ({setting})."
+        text = "" if scores is None else f"This frame: {format_scores(scores)} ({entry['scored_under']})."
         sections.append(Section(f"{entry['scene']} / {entry['token']}", text, tuple(images)))
         frames.append(entry)
         progress(f"[viz] {number}/{len(picks)} {entry['token']}: {len(images)} images")
