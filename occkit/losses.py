@@ -71,17 +71,23 @@ def masked_cross_entropy(
     """
     _check_logits_labels(logits, labels)
     labels = labels.long()
-    weight = torch.ones_like(labels, dtype=logits.dtype) if mask is None else mask.to(logits.dtype)
-    valid = labels != IGNORE_INDEX
-    safe_labels = torch.where(valid, labels, torch.zeros_like(labels))
-    per_voxel = F.cross_entropy(logits, safe_labels, reduction="none")  # (B, ...)
-    weight = weight * valid.to(logits.dtype)
+    counted = labels != IGNORE_INDEX if mask is None else (labels != IGNORE_INDEX) & (mask != 0)
+    # Only the counted voxels, classes last: a softmax along contiguous rows, over a fraction of the grid.
+    rows, target = _class_rows(logits)[counted], labels[counted]  # (P, K), (P,)
+    per_voxel = F.cross_entropy(rows, target, reduction="none")  # (P,)
+    weight = torch.ones_like(per_voxel) if mask is None else mask[counted].to(logits.dtype)
     if class_weights is not None:
-        weight = weight * class_weights.to(logits)[safe_labels]
+        weight = weight * class_weights.to(logits)[target]
         normaliser = weight.sum()
     else:
         normaliser = (mask.to(logits.dtype).sum() if mask is not None else torch.tensor(float(labels.numel())))
     return (per_voxel * weight).sum() / normaliser.clamp_min(1.0)
+
+
+def _class_rows(scores: Tensor) -> Tensor:
+    """``(B, K, ...)`` -> ``(B, ..., K)``: one row of class scores per voxel (a view when the head made the classes
+    the innermost dimension, as the channel-to-height heads do)."""
+    return scores.movedim(1, -1)
 
 
 def drop_free_cross_entropy(
@@ -205,20 +211,22 @@ def lovasz_grad(gt_sorted: Tensor) -> Tensor:
     when the ``i`` largest are; the Lovasz extension is the dot product of these increments with the sorted errors.
 
     Args:
-        gt_sorted: ``(P, ...)`` float 0/1 ground truth ordered by decreasing error along dim 0; trailing dims are
-            independent problems (e.g. one per class).
+        gt_sorted: ``(..., P)`` float 0/1 ground truth ordered by decreasing error along the last dimension; leading
+            dims are independent problems (e.g. one per class).
 
     Returns:
-        ``(P, ...)`` increments, same dtype.
+        ``(..., P)`` increments, same dtype.
     """
-    total = gt_sorted.sum(0, keepdim=True)
-    intersection = total - gt_sorted.cumsum(0)  # ground-truth voxels not yet among the mispredictions
-    union = total + (1 - gt_sorted).cumsum(0)  # >= 1: the total if positive, else the count of negatives so far
+    total = gt_sorted.sum(-1, keepdim=True)
+    intersection = total - gt_sorted.cumsum(-1)  # ground-truth voxels not yet among the mispredictions
+    union = total + (1 - gt_sorted).cumsum(-1)  # >= 1: the total if positive, else the count of negatives so far
     jaccard = 1 - intersection / union
-    return torch.cat([jaccard[:1], jaccard[1:] - jaccard[:-1]], dim=0)
+    return torch.cat([jaccard[..., :1], jaccard[..., 1:] - jaccard[..., :-1]], dim=-1)
 
 
-def lovasz_softmax(probs: Tensor, labels: Tensor, mask: Tensor | None = None, classes: str = "present") -> Tensor:
+def lovasz_softmax(
+    probs: Tensor, labels: Tensor, mask: Tensor | None = None, classes: str = "present", from_logits: bool = False
+) -> Tensor:
     """Lovasz-softmax loss (Berman et al.): the Lovasz extension of each class's Jaccard loss, averaged over classes.
 
     Per class ``c`` the errors ``|[y = c] - p_c|`` of the counted voxels are sorted in decreasing order and dotted
@@ -226,10 +234,12 @@ def lovasz_softmax(probs: Tensor, labels: Tensor, mask: Tensor | None = None, cl
     the whole batch).
 
     Args:
-        probs: ``(B, K, ...)`` class probabilities (softmax of the logits).
+        probs: ``(B, K, ...)`` class probabilities (softmax of the logits), or the logits with ``from_logits``.
         labels: ``(B, ...)`` integer class ids, ``255`` ignored.
         mask: ``(B, ...)`` bool, voxels that count; None counts every voxel.
         classes: ``"present"`` averages over the classes present among the counted labels, ``"all"`` over all K.
+        from_logits: ``probs`` holds logits; the softmax is taken over the counted voxels alone (the same values as
+            the softmax of the whole grid, at a fraction of its cost).
 
     Returns:
         Scalar loss; zero (with a gradient path) when no voxel counts.
@@ -239,14 +249,18 @@ def lovasz_softmax(probs: Tensor, labels: Tensor, mask: Tensor | None = None, cl
         raise ValueError(f"classes must be 'present' or 'all', got {classes!r}")
     num_classes = probs.shape[1]
     safe_labels, weight = _counted(labels, mask, probs.dtype)
-    keep = weight.reshape(-1) > 0
-    flat = probs.movedim(1, -1).reshape(-1, num_classes)[keep]  # (P, K) counted voxels
-    truth = F.one_hot(safe_labels.reshape(-1)[keep], num_classes).to(probs.dtype)  # (P, K)
+    keep = weight > 0
+    flat = _class_rows(probs)[keep]  # (P, K) counted voxels
+    if from_logits:
+        flat = flat.softmax(dim=1)
+    truth = F.one_hot(safe_labels[keep], num_classes).to(probs.dtype)  # (P, K)
     if classes == "present":  # sorting only these columns is the expensive part's saving
         present = truth.sum(0) > 0
         flat, truth = flat[:, present], truth[:, present]
-    errors, order = (truth - flat).abs().sort(dim=0, descending=True)
-    per_class = (errors * lovasz_grad(truth.gather(0, order))).sum(0)  # (classes averaged,)
+    # One contiguous row per class (sorting along rows is quicker than down the columns of (P, K)).
+    flat, truth = flat.t().contiguous(), truth.t().contiguous()  # (classes, P)
+    errors, order = (truth - flat).abs().sort(dim=1, descending=True)
+    per_class = (errors * lovasz_grad(truth.gather(1, order))).sum(1)  # (classes averaged,)
     return per_class.sum() / max(per_class.numel(), 1)
 
 

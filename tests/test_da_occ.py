@@ -52,7 +52,7 @@ def test_every_parameter_gets_a_gradient(synthetic_batch):
 def test_loss_decreases_on_a_fixed_batch(synthetic_batch):
     model = tiny().train()
     batch = synthetic_batch(batch_size=1, image_size=IMAGE_SIZE, depth_stride=16)
-    history = fit_batch(model, batch)
+    history = fit_batch(model, batch, steps=12)  # about 0.2 of the first after 12 steps
     assert history[-1] < 0.5 * history[0], history
 
 

@@ -45,7 +45,7 @@ def test_shapes_and_every_parameter_gets_a_gradient(synthetic_batch):
 def test_loss_decreases_on_a_fixed_batch(synthetic_batch):
     model = tiny().train()
     batch = synthetic_batch(batch_size=1, image_size=(64, 176))
-    history = fit_batch(model, batch)
+    history = fit_batch(model, batch, steps=14)  # about 0.25 of the first after 14 steps
     assert history[-1] < 0.5 * history[0], history
 
 

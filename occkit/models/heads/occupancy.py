@@ -99,5 +99,5 @@ class OccupancyHead(nn.Module):
         else:
             losses = {"occupancy": drop_free_cross_entropy(logits, labels, self.cfg.free_index, self.cfg.keep_free)}
         if self.cfg.lovasz_weight > 0:
-            losses["lovasz"] = self.cfg.lovasz_weight * lovasz_softmax(logits.softmax(dim=1), labels, mask)
+            losses["lovasz"] = self.cfg.lovasz_weight * lovasz_softmax(logits, labels, mask, from_logits=True)
         return losses
