@@ -18,9 +18,10 @@ import torch
 
 from occkit import zoo
 from occkit.data.collate import collate
-from occkit.data.dataset import CAMERAS, DatasetConfig, OccupancyDataset
+from occkit.data.dataset import DatasetConfig, OccupancyDataset
 from occkit.data.transforms import ImageAugConfig
 from occkit.models.complexity import count_parameters
+from occkit.nuscenes import CAMERAS
 
 
 def main() -> None:

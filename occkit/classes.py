@@ -14,6 +14,9 @@ __all__ = [
     "Taxonomy",
     "OCC3D_CLASSES",
     "OCC3D_COLORS",
+    "UNOBSERVED_COLOR",
+    "EMPTY_COLOR",
+    "IGNORE_COLOR",
     "OCC3D",
     "SURROUNDOCC_CLASSES",
     "SURROUNDOCC",
@@ -71,6 +74,13 @@ OCC3D_COLORS: tuple[tuple[int, int, int], ...] = (
     (0, 175, 0),  # vegetation: green
     (255, 255, 255),  # free: white
 )
+#: Columns that no camera observes (outside the camera mask): dark, so observed content stands out.
+UNOBSERVED_COLOR = (30, 30, 30)
+#: Observed columns that hold no occupied voxel: a grey lighter than unobserved columns and darker than any class
+#: but ``others`` (the palette's white is free space, too close to ``manmade`` to read as "nothing here").
+EMPTY_COLOR = (75, 75, 75)
+#: Voxels labelled 255 (ignored by losses and metrics).
+IGNORE_COLOR = (128, 128, 128)
 
 #: SurroundOcc class names in id order (0 = empty; 1..16 are Occ3D's 1..16).
 SURROUNDOCC_CLASSES: tuple[str, ...] = ("empty",) + OCC3D_CLASSES[1:17]

@@ -121,7 +121,7 @@ def _run_sim(args: argparse.Namespace) -> int:
     )
     print("time per stage (s, summed over scenes): " + ", ".join(f"{k} {v}" for k, v in summary["timings"].items()))
     if args.preview is not None:
-        from occkit.sim.preview import contact_sheet
+        from occkit.viz.contact_sheet import contact_sheet
 
         print(f"wrote {contact_sheet(args.out, args.preview)}")
     if args.json is not None:
@@ -524,7 +524,7 @@ def _add_demo(parser: argparse.ArgumentParser) -> None:
 
 
 def _run_demo(args: argparse.Namespace) -> int:
-    from occkit.engine.demo import DEMO_MODELS, run_demo
+    from occkit.demo import DEMO_MODELS, run_demo
 
     output_folder(args.out, "--out")
     output_folder(args.data, "--data")

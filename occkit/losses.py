@@ -264,6 +264,13 @@ def lovasz_softmax(
     return per_class.sum() / max(per_class.numel(), 1)
 
 
+def _counted_probabilities(logits: Tensor, labels: Tensor, mask: Tensor | None) -> tuple[Tensor, Tensor]:
+    """Class probabilities ``(P, K)`` (softmax) and labels ``(P,)`` of the ``P`` counted voxels alone."""
+    safe_labels, weight = _counted(labels, mask, logits.dtype)
+    keep = weight > 0
+    return _class_rows(logits)[keep].softmax(dim=1), safe_labels[keep]
+
+
 def _neg_log_ratio(numerator: Tensor, denominator: Tensor) -> Tensor:
     """``BCE(numerator / denominator, 1) = -ln(ratio)`` where the denominator is positive, else 0 (term skipped).
 
@@ -291,15 +298,12 @@ def scene_class_affinity_semantic(logits: Tensor, labels: Tensor, mask: Tensor |
         Scalar loss; zero (with a gradient path) when no voxel counts.
     """
     _check_logits_labels(logits, labels)
-    num_classes = logits.shape[1]
-    safe_labels, weight = _counted(labels, mask, logits.dtype)
-    probs = F.softmax(logits, dim=1).movedim(1, -1).reshape(-1, num_classes)  # (V, K)
-    weight = weight.reshape(-1, 1)
-    truth = F.one_hot(safe_labels.reshape(-1), num_classes).to(logits.dtype) * weight  # (V, K), 0 where not counted
-    others = weight - truth  # counted voxels of the other classes
+    probs, target = _counted_probabilities(logits, labels, mask)  # (P, K), (P,)
+    truth = F.one_hot(target, logits.shape[1]).to(logits.dtype)  # (P, K)
+    others = 1 - truth  # the counted voxels of the other classes
     hits = (probs * truth).sum(0)
     per_class = (
-        _neg_log_ratio(hits, (probs * weight).sum(0))  # precision
+        _neg_log_ratio(hits, probs.sum(0))  # precision
         + _neg_log_ratio(hits, truth.sum(0))  # recall
         + _neg_log_ratio(((1 - probs) * others).sum(0), others.sum(0))  # specificity
     )
@@ -326,13 +330,13 @@ def scene_class_affinity_geometric(
         Scalar loss; zero (with a gradient path) when no voxel counts.
     """
     _check_logits_labels(logits, labels)
-    safe_labels, weight = _counted(labels, mask, logits.dtype)
-    free_prob = F.softmax(logits, dim=1)[:, free_index]  # (B, ...)
-    occupied = (safe_labels != free_index).to(logits.dtype) * weight
-    free = weight - occupied
+    probs, target = _counted_probabilities(logits, labels, mask)  # (P, K), (P,)
+    free_prob = probs[:, free_index]
+    occupied = (target != free_index).to(logits.dtype)
+    free = 1 - occupied
     hits = ((1 - free_prob) * occupied).sum()
     return (
-        _neg_log_ratio(hits, ((1 - free_prob) * weight).sum())  # precision
+        _neg_log_ratio(hits, (1 - free_prob).sum())  # precision
         + _neg_log_ratio(hits, occupied.sum())  # recall
         + _neg_log_ratio((free_prob * free).sum(), free.sum())  # specificity
     )

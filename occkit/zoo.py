@@ -217,8 +217,9 @@ def _da_occ_tiny() -> Any:
 # ----------------------------------------------------------------------- data and training settings per family
 def _data(family: str, tiny: bool) -> Any:
     """Training-split dataset settings: the paper's inputs, or the CPU demo's small ones for tiny entries."""
-    from occkit.data.dataset import CAMERAS, DatasetConfig
+    from occkit.data.dataset import DatasetConfig
     from occkit.data.transforms import ImageAugConfig
+    from occkit.nuscenes import CAMERAS
 
     sweeps = {"daocc": 9, "daocc_lidar": 9, "daocc_surroundocc": 9, "flashocc": -1, "da_occ": 0}[family]
     cameras = () if family == "daocc_lidar" else CAMERAS

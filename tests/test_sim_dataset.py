@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from occkit.cli import main
+from occkit.data.consistency import boxes_in_cameras, lidar_in_occupied
 from occkit.data.tables import load_tables
-from occkit.sim.consistency import boxes_in_cameras, lidar_in_occupied
 from occkit.sim.generate import SimConfig, simulate_dataset
 from occkit.sim.world import WorldConfig
 

@@ -14,6 +14,7 @@ from PIL import Image
 
 from occkit.classes import OCC3D_COLORS
 from occkit.cli import main
+from occkit.figure import new_figure, save_figure
 from occkit.geometry.camera import image_aug_matrix
 from occkit.geometry.grid import VoxelGrid
 from occkit.geometry.se3 import invert_transform, make_transform, rotation_about_z
@@ -43,7 +44,6 @@ from occkit.viz.errors import (
     frame_scores,
     voxel_outcomes,
 )
-from occkit.viz.figure import new_figure, save_figure
 from occkit.viz.palette import EMPTY_COLOR, UNOBSERVED_COLOR
 from occkit.viz.voxels import draw_voxels, view_direction, voxel_faces
 

@@ -45,14 +45,13 @@ from occkit.data.transforms import (
 from occkit.errors import InputError
 from occkit.geometry.se3 import invert_transform
 from occkit.label_space import label_space
+from occkit.nuscenes import CAMERAS
 from occkit.types import Sample
 
 __all__ = ["DatasetConfig", "OccupancyDataset", "SampleError"]
 
 log = logging.getLogger(__name__)
 
-#: Camera order of BEVDet / FlashOcc / DAOcc configs.
-CAMERAS = ("CAM_FRONT_LEFT", "CAM_FRONT", "CAM_FRONT_RIGHT", "CAM_BACK_LEFT", "CAM_BACK", "CAM_BACK_RIGHT")
 _IMAGENET_MEAN = (123.675, 116.28, 103.53)
 _IMAGENET_STD = (58.395, 57.12, 57.375)
 

@@ -41,11 +41,11 @@ import numpy as np
 from occkit import __version__
 from occkit.classes import detection_name
 from occkit.data.names import is_safe_name, is_safe_relative_path, safe_name, safe_relative_path
-from occkit.data.tables import TABLE_NAMES, NuScenesTables, TableError, load_tables
+from occkit.data.tables import NuScenesTables, TableError, load_tables
+from occkit.nuscenes import CAMERA_ORDER, LIDAR_CHANNEL, TABLE_NAMES
 
 __all__ = [
     "INDEX_FORMAT",
-    "CAMERA_ORDER",
     "BOX_COLUMNS",
     "IndexFormatError",
     "SweepRecord",
@@ -62,12 +62,6 @@ __all__ = [
 
 #: Value of the ``format`` key of index files.
 INDEX_FORMAT = "occkit-index/1"
-
-#: Camera order of records (nuScenes' and mmdetection3d's); channels not listed follow in name order.
-CAMERA_ORDER = ("CAM_FRONT", "CAM_FRONT_RIGHT", "CAM_FRONT_LEFT", "CAM_BACK", "CAM_BACK_LEFT", "CAM_BACK_RIGHT")
-
-#: The key-frame LiDAR channel.
-LIDAR_CHANNEL = "LIDAR_TOP"
 
 #: nuscenes-devkit's ``box_velocity`` default: neighbours further apart than this (s) give no velocity; twice
 #: this for a centred difference.

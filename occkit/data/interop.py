@@ -73,7 +73,6 @@ from PIL import Image
 
 from occkit.classes import DETECTION_CLASSES, NUSCENES_TO_OCC3D, detection_name
 from occkit.data.index import (
-    CAMERA_ORDER,
     CameraRecord,
     FrameRecord,
     SweepRecord,
@@ -82,6 +81,7 @@ from occkit.data.index import (
     rotation_yaw,
 )
 from occkit.data.names import is_safe_relative_path, safe_name, safe_relative_path
+from occkit.nuscenes import CAMERA_ORDER
 
 __all__ = [
     "INFO_FORMATS",

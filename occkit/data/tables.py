@@ -18,24 +18,9 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
-__all__ = ["TABLE_NAMES", "REQUIRED_FIELDS", "SHARED_FIELDS", "TableError", "NuScenesTables", "load_tables"]
+from occkit.nuscenes import TABLE_NAMES
 
-#: The 13 tables of a nuScenes version folder, in the devkit's load order.
-TABLE_NAMES = (
-    "category",
-    "attribute",
-    "visibility",
-    "instance",
-    "sensor",
-    "calibrated_sensor",
-    "ego_pose",
-    "log",
-    "scene",
-    "sample",
-    "sample_data",
-    "sample_annotation",
-    "map",
-)
+__all__ = ["TABLE_NAMES", "REQUIRED_FIELDS", "SHARED_FIELDS", "TableError", "NuScenesTables", "load_tables"]
 
 #: Fields every record of a table must have: the ones occkit reads (the nuScenes schema has a few more).
 REQUIRED_FIELDS: dict[str, tuple[str, ...]] = {

@@ -7,7 +7,7 @@ import json
 from collections.abc import Mapping
 from pathlib import Path
 
-__all__ = ["RunLog", "plot_losses", "plot_per_class"]
+__all__ = ["RunLog", "plot_losses"]
 
 
 class RunLog:
@@ -92,13 +92,11 @@ class RunLog:
 
 def plot_losses(rows: list[dict], path: str | Path) -> None:
     """Loss terms and their sum against the step, one PNG."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from occkit.figure import new_figure, save_figure
 
     terms = [k for k in (rows[0] if rows else {}) if k.startswith("loss")]
-    fig, ax = plt.subplots(figsize=(7, 4))
+    fig = new_figure(7, 4, dpi=120)
+    ax = fig.add_subplot()
     for term in terms:
         ax.plot([r["step"] for r in rows], [r[term] for r in rows], label=term.removeprefix("loss/") or "total")
     ax.set_xlabel("optimizer step")
@@ -107,30 +105,4 @@ def plot_losses(rows: list[dict], path: str | Path) -> None:
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-
-
-def plot_per_class(per_class_iou: Mapping[str, float | None], path: str | Path, title: str) -> None:
-    """Per-class IoU bars in the Occ3D palette."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    from occkit.classes import OCC3D_CLASSES, OCC3D_COLORS
-
-    names = [n for n in per_class_iou if n != "free"]
-    values = [100 * (per_class_iou[n] or 0.0) for n in names]
-    colors = [tuple(c / 255 for c in OCC3D_COLORS[OCC3D_CLASSES.index(n)][:3]) if n in OCC3D_CLASSES else "gray"
-              for n in names]  # fmt: skip
-    fig, ax = plt.subplots(figsize=(9, 4))
-    ax.bar(range(len(names)), values, color=colors, edgecolor="black", linewidth=0.5)
-    ax.set_xticks(range(len(names)), names, rotation=60, ha="right", fontsize=8)
-    ax.set_ylabel("IoU (%)")
-    ax.set_ylim(0, 100)
-    ax.set_title(title)
-    ax.grid(axis="y", alpha=0.3)
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    save_figure(fig, path)

@@ -40,7 +40,8 @@ from occkit.engine.checkpoint import (
 )
 from occkit.engine.evaluate import evaluate_model
 from occkit.engine.experiment import Experiment, check_label_space, experiment_yaml
-from occkit.engine.run_log import RunLog, plot_losses, plot_per_class
+from occkit.engine.run_log import RunLog, plot_losses
+from occkit.metrics.evaluate import plot_per_class_iou
 from occkit.types import Batch
 
 __all__ = ["train", "ModelEMA", "lr_factor", "TrainResult", "check_output_folder"]
@@ -360,6 +361,6 @@ def _finish(trainer: _Trainer, log: RunLog, metrics: dict | None) -> None:
     if rows:
         plot_losses(rows, trainer.out / "loss.png")
     if metrics is not None:
-        plot_per_class(metrics["per_class_iou"], trainer.out / "per_class_iou.png",
-                       f"validation at step {trainer.step}: mIoU {100 * metrics['miou']:.1f}")  # fmt: skip
+        plot_per_class_iou(metrics, trainer.out / "per_class_iou.png",
+                           f"validation at step {trainer.step}: mIoU {100 * metrics['miou']:.1f}")  # fmt: skip
     log.close()

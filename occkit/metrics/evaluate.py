@@ -35,6 +35,7 @@ __all__ = [
     "evaluate_predictions",
     "markdown_table",
     "write_report",
+    "plot_per_class_iou",
 ]
 
 #: Keys a prediction file may store its grid under, in the order they are looked up.
@@ -326,17 +327,17 @@ def markdown_table(result: Mapping) -> str:
     return "\n".join(lines) + "\n"
 
 
-def _plot_per_class(result: Mapping, path: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+def plot_per_class_iou(result: Mapping, path: str | Path, title: str | None = None) -> Path:
+    """Per-class IoU bars in the taxonomy's colours, with the mIoU as a line; ``result`` as :func:`evaluate_predictions`
+    returns it. The default title gives the frame count and the mask."""
+    from occkit.figure import new_figure, save_figure
 
     names = list(result["per_class_iou"])
     values = [100 * (result["per_class_iou"][name] or 0.0) for name in names]
     taxonomy = label_space(result.get("label_space", "occ3d")).taxonomy
     colors = [tuple(c / 255 for c in taxonomy.colors[taxonomy.classes.index(name)]) for name in names]
-    figure, axis = plt.subplots(figsize=(7, 0.32 * len(names) + 1.2), dpi=120)
+    figure = new_figure(7, 0.32 * len(names) + 1.2, dpi=120)
+    axis = figure.add_subplot()
     # A dark outline keeps the white (free) and black (others) bars visible on a white background.
     axis.barh(names, values, color=colors, edgecolor="#222222", linewidth=0.8)
     for row, name in enumerate(names):
@@ -348,10 +349,9 @@ def _plot_per_class(result: Mapping, path: Path) -> None:
     axis.invert_yaxis()
     axis.set_xlim(0, 100)
     axis.set_xlabel("IoU (%)")
-    axis.set_title(f"Per-class IoU, {result['frames']} frames, mask: {result['mask'] or 'none'}")
+    axis.set_title(title or f"Per-class IoU, {result['frames']} frames, mask: {result['mask'] or 'none'}")
     figure.tight_layout()
-    figure.savefig(path)
-    plt.close(figure)
+    return save_figure(figure, path)
 
 
 def write_report(result: Mapping, out_dir: str | Path) -> dict[str, Path]:
@@ -365,5 +365,5 @@ def write_report(result: Mapping, out_dir: str | Path) -> dict[str, Path]:
     }
     paths["json"].write_text(json.dumps(dict(result), indent=2) + "\n")
     paths["markdown"].write_text(markdown_table(result))
-    _plot_per_class(result, paths["plot"])
+    plot_per_class_iou(result, paths["plot"])
     return paths

@@ -17,7 +17,7 @@ from occkit.sim.primitives import GroundMap
 from occkit.sim.roads import Crossing, CrossSection, Path, Plan
 
 if TYPE_CHECKING:
-    from occkit.sim.world import WorldConfig
+    from occkit.sim.config import WorldConfig
 
 __all__ = ["Scene", "draw_main_path", "draw_cross_section", "draw_ego_motion", "draw_crossings", "draw_plan"]
 

@@ -15,11 +15,10 @@ import numpy as np
 import torch
 
 from occkit.geometry.se3 import matrix_to_quaternion, quaternion_to_matrix
+from occkit.nuscenes import CAMERAS
 
-__all__ = ["CAMERA_NAMES", "CameraSpec", "LidarSpec", "camera_rig", "LIDAR_TOP", "yaw_quaternion", "pose_matrix"]
+__all__ = ["CameraSpec", "LidarSpec", "camera_rig", "LIDAR_TOP", "yaw_quaternion", "pose_matrix"]
 
-#: Camera channels in nuScenes' canonical order (the order of BEVDet/FlashOcc configs).
-CAMERA_NAMES = ("CAM_FRONT_LEFT", "CAM_FRONT", "CAM_FRONT_RIGHT", "CAM_BACK_LEFT", "CAM_BACK", "CAM_BACK_RIGHT")
 
 # name: (translation in ego (m), yaw (deg), focal length at 1600x900 (px))
 _CAMERA_MOUNTS = {
@@ -77,7 +76,7 @@ class CameraSpec:
 
 
 def camera_rig(width: int = 800, height: int = 450) -> tuple[CameraSpec, ...]:
-    """The six nuScenes cameras (in :data:`CAMERA_NAMES` order) for images of ``width x height`` pixels.
+    """The six nuScenes cameras (in :data:`CAMERAS` order) for images of ``width x height`` pixels.
 
     The intrinsics are those of nuScenes' 1600x900 images scaled by ``width / 1600`` (and ``height / 900``),
     so a 16:9 size keeps the nuScenes fields of view.
@@ -88,7 +87,7 @@ def camera_rig(width: int = 800, height: int = 450) -> tuple[CameraSpec, ...]:
     camera_to_ego_axes = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
     scale_u, scale_v = width / _NUSCENES_SIZE[0], height / _NUSCENES_SIZE[1]
     cameras = []
-    for name in CAMERA_NAMES:
+    for name in CAMERAS:
         translation, yaw_deg, focal = _CAMERA_MOUNTS[name]
         yaw = math.radians(yaw_deg)
         rotation = _quaternion_to_matrix(yaw_quaternion(yaw)) @ camera_to_ego_axes

@@ -17,7 +17,8 @@ from typing import NamedTuple
 import numpy as np
 
 from occkit.geometry.grid import OCC3D_GRID, SURROUNDOCC_GRID
-from occkit.sim.generate import (
+from occkit.nuscenes import CAMERAS
+from occkit.sim.config import (
     FIRST_TIMESTAMP_US,
     KEY_FRAME_INTERVAL_US,
     SWEEP_INTERVAL_US,
@@ -31,7 +32,7 @@ from occkit.sim.lidar import scan_lidar
 from occkit.sim.primitives import Primitives
 from occkit.sim.raytrace import cast_rays
 from occkit.sim.render import render_camera
-from occkit.sim.rig import CAMERA_NAMES, LIDAR_TOP, CameraSpec, camera_rig, yaw_quaternion
+from occkit.sim.rig import LIDAR_TOP, CameraSpec, camera_rig, yaw_quaternion
 from occkit.sim.world import BoxState, World, generate_world
 from occkit.sim.writer import (
     make_token,
@@ -328,7 +329,7 @@ def simulate_scene(config: SimConfig, index: int, root: Path, progress: Callable
                     world.sun_direction,
                     world.sky_zenith,
                     world.sky_horizon,
-                    _child_seed(world_seed, 2, k, CAMERA_NAMES.index(camera.name)),
+                    _child_seed(world_seed, 2, k, CAMERAS.index(camera.name)),
                 )
             filename = f"samples/{camera.name}/{scene.log_name}__{camera.name}__{timestamp}.jpg"
             with timer("write"):

@@ -28,6 +28,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from occkit.sim.config import WorldConfig
 from occkit.sim.ground import paint_ground
 from occkit.sim.layout import Scene, draw_cross_section, draw_crossings, draw_ego_motion, draw_main_path, draw_plan
 from occkit.sim.motion import EgoMotion, Tracks, wrap
@@ -37,32 +38,6 @@ from occkit.sim.primitives import Primitives
 from occkit.sim.selection import select
 
 __all__ = ["CATEGORY_SIZES", "WorldConfig", "AnnotatedObject", "BoxState", "World", "generate_world"]
-
-
-@dataclass(frozen=True)
-class WorldConfig:
-    """Settings of the procedural world."""
-
-    duration: float = 20.0
-    """Seconds the ego drives (the scene length)."""
-    ego_speed: tuple[float, float] = (4.0, 10.0)
-    """Range (m/s) of the ego's mean speed, drawn per scene."""
-    ground_resolution: float = 0.1
-    """Cell size (m) of the ground raster."""
-    margin: float = 60.0
-    """The world extends this far (m) beyond the ego path; the sensors see about 55 m."""
-    density: float = 1.0
-    """Scales the number of objects: traffic, pedestrians, furniture (less makes faster tests)."""
-
-    def __post_init__(self) -> None:
-        lo, hi = self.ego_speed
-        if not 0.0 < lo <= hi:
-            raise ValueError(f"ego_speed must be a range 0 < lo <= hi, got {self.ego_speed}")
-        for name in ("duration", "ground_resolution", "density"):
-            if not getattr(self, name) > 0:
-                raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
-        if self.margin < 0:
-            raise ValueError(f"margin must be non-negative, got {self.margin}")
 
 
 @dataclass(frozen=True)

@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from occkit.classes import NUSCENES_TO_OCC3D
+from occkit.nuscenes import CAMERA_ORDER, LIDAR_CHANNEL
 
 __all__ = [
     "ATTRIBUTES",
@@ -60,15 +61,8 @@ VISIBILITY_LEVELS = {
     "4": ("v80-100", "visibility of whole object is between 80 and 100%"),
 }
 
-_SENSORS = (
-    ("CAM_FRONT", "camera"),
-    ("CAM_FRONT_RIGHT", "camera"),
-    ("CAM_FRONT_LEFT", "camera"),
-    ("CAM_BACK", "camera"),
-    ("CAM_BACK_LEFT", "camera"),
-    ("CAM_BACK_RIGHT", "camera"),
-    ("LIDAR_TOP", "lidar"),
-)
+#: (channel, modality) of the sensor table, in nuScenes' order.
+_SENSORS = (*((channel, "camera") for channel in CAMERA_ORDER), (LIDAR_CHANNEL, "lidar"))
 
 
 def make_token(*parts: object) -> str:

@@ -3,7 +3,6 @@
 Everything draws with matplotlib's Agg canvas, so no display (X server) is ever needed, and nothing here changes the
 global pyplot backend of an interactive session.
 
-- :mod:`occkit.viz.figure`: headless figures and saving them.
 - :mod:`occkit.viz.palette`: the Occ3D class colours as arrays, class legends.
 - :mod:`occkit.viz.bev`: bird's-eye-view semantic maps (the class of the top-most occupied voxel per column).
 - :mod:`occkit.viz.voxels`: 3D voxel renders seen from behind and above the ego car.

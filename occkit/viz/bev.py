@@ -17,9 +17,9 @@ from matplotlib.figure import Figure
 from matplotlib.patches import Rectangle
 
 from occkit.classes import IGNORE_INDEX, OCC3D, Taxonomy
+from occkit.figure import new_figure
 from occkit.geometry.grid import OCC3D_GRID, VoxelGrid
 from occkit.label_space import OCC3D_SPACE, LabelSpace
-from occkit.viz.figure import new_figure
 from occkit.viz.palette import EMPTY_COLOR, UNOBSERVED_COLOR, add_class_legend, class_colors
 
 __all__ = ["EGO_BOX", "top_occupied", "bev_view", "bev_image", "bev_extent", "draw_bev", "draw_ego", "bev_figure"]

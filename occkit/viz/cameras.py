@@ -23,12 +23,13 @@ from matplotlib.figure import Figure
 from torch import Tensor
 
 from occkit.classes import IGNORE_INDEX
+from occkit.figure import new_figure
 from occkit.geometry.camera import project_points
 from occkit.geometry.grid import OCC3D_GRID, VoxelGrid
 from occkit.geometry.se3 import invert_transform, transform_points
 from occkit.label_space import OCC3D_SPACE, LabelSpace
+from occkit.nuscenes import CAMERAS
 from occkit.types import Sample
-from occkit.viz.figure import new_figure
 from occkit.viz.palette import add_class_legend, class_colors
 
 __all__ = [
@@ -42,7 +43,7 @@ __all__ = [
 ]
 
 #: Panel rows of the surround view: front cameras left to right on top, back cameras below.
-SURROUND_LAYOUT = (("CAM_FRONT_LEFT", "CAM_FRONT", "CAM_FRONT_RIGHT"), ("CAM_BACK_LEFT", "CAM_BACK", "CAM_BACK_RIGHT"))
+SURROUND_LAYOUT = (CAMERAS[:3], CAMERAS[3:])
 _PANEL_WIDTH = 4.0  # inches per camera panel
 _GAP = 0.05  # inches between panels
 _TITLE = 0.22  # inches above each panel for its title

@@ -16,10 +16,10 @@ from matplotlib.figure import Figure
 from matplotlib.patches import Patch
 
 from occkit.classes import IGNORE_INDEX, OCC3D
+from occkit.figure import new_figure
 from occkit.label_space import OCC3D_SPACE, LabelSpace
 from occkit.metrics.confusion import OccupancyMetric
 from occkit.viz.bev import bev_image, bev_view, draw_bev, top_occupied
-from occkit.viz.figure import new_figure
 from occkit.viz.palette import EMPTY_COLOR, UNOBSERVED_COLOR, add_class_legend
 
 __all__ = [

@@ -13,19 +13,12 @@ import numpy as np
 from matplotlib.axes import Axes
 from matplotlib.patches import Patch
 
-from occkit.classes import IGNORE_INDEX, OCC3D, OCC3D_COLORS, Taxonomy
+from occkit.classes import EMPTY_COLOR, IGNORE_COLOR, IGNORE_INDEX, OCC3D, OCC3D_COLORS, UNOBSERVED_COLOR, Taxonomy
 
 __all__ = ["PALETTE", "UNOBSERVED_COLOR", "EMPTY_COLOR", "IGNORE_COLOR", "class_colors", "add_class_legend"]
 
 #: ``(18, 3)`` uint8 RGB per Occ3D id (17 = free).
 PALETTE = np.array(OCC3D_COLORS, dtype=np.uint8)
-#: Columns that no camera observes (outside the camera mask): dark, so observed content stands out.
-UNOBSERVED_COLOR = (30, 30, 30)
-#: Observed columns that hold no occupied voxel: a grey lighter than unobserved columns and darker than any class
-#: but ``others`` (the palette's white is free space, too close to ``manmade`` to read as "nothing here").
-EMPTY_COLOR = (75, 75, 75)
-#: Voxels labelled 255 (ignored by losses and metrics).
-IGNORE_COLOR = (128, 128, 128)
 
 
 def class_colors(labels: np.ndarray, taxonomy: Taxonomy = OCC3D) -> np.ndarray:

@@ -20,16 +20,17 @@ import torch
 from matplotlib.figure import Figure
 from PIL import Image
 
-from occkit.data.dataset import CAMERAS, DatasetConfig, OccupancyDataset
+from occkit.data.dataset import DatasetConfig, OccupancyDataset
 from occkit.data.index import FrameRecord
 from occkit.data.names import path_under, safe_name
 from occkit.data.transforms import ImageAugConfig, augment_image, sample_image_aug
+from occkit.figure import MIN_PALETTE_COLORS, save_figure
 from occkit.label_space import LabelSpace, label_space
+from occkit.nuscenes import CAMERAS
 from occkit.types import Sample
 from occkit.viz.bev import bev_figure
 from occkit.viz.cameras import CameraSet, lidar_camera_figure, lidar_points_in_ego, occupancy_camera_figure
 from occkit.viz.errors import comparison_figure, format_scores, frame_scores
-from occkit.viz.figure import MIN_PALETTE_COLORS, save_figure
 from occkit.viz.page import PageImage, Section, write_page
 from occkit.viz.voxels import voxel_figure
 

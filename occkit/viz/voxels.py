@@ -19,9 +19,9 @@ from mpl_toolkits.mplot3d import Axes3D
 from mpl_toolkits.mplot3d.art3d import Poly3DCollection
 
 from occkit.classes import IGNORE_INDEX
+from occkit.figure import new_figure
 from occkit.label_space import OCC3D_SPACE, LabelSpace
 from occkit.viz.bev import EGO_BOX
-from occkit.viz.figure import new_figure
 from occkit.viz.palette import add_class_legend, class_colors
 
 __all__ = ["EGO_COLOR", "voxel_faces", "view_direction", "draw_voxels", "voxel_figure"]

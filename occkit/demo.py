@@ -65,18 +65,16 @@ def _render(models: dict, datasets: dict, out: Path, frames: int = 3) -> Path:
     ``datasets`` holds each model's own view of the validation split (a camera-only model loads no LiDAR); they
     list the same frames in the same order.
     """
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
     import torch
 
     from occkit.data.collate import collate
+    from occkit.figure import new_figure, save_figure
     from occkit.viz.bev import bev_image
 
     first = next(iter(datasets.values()))
     picks = np.linspace(0, len(first) - 1, frames).round().astype(int)
-    fig, axes = plt.subplots(frames, 1 + len(models), figsize=(3.2 * (1 + len(models)), 3.3 * frames))
+    fig = new_figure(3.2 * (1 + len(models)), 3.3 * frames)
+    axes = fig.subplots(frames, 1 + len(models), squeeze=False)
     for row, index in enumerate(picks):
         batch = collate([first[int(index)]])
         mask = batch.mask_camera[0].numpy()
@@ -93,10 +91,7 @@ def _render(models: dict, datasets: dict, out: Path, frames: int = 3) -> Path:
             axis.axis("off")
     fig.suptitle("held-out frames, bird's-eye view (forward up), camera-visible voxels", fontsize=10)
     fig.tight_layout()
-    path = out / "predictions.png"
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save_figure(fig, out / "predictions.png", dpi=110)
 
 
 def _report(out: Path, results: dict, baseline: dict, seconds: float, render: Path) -> Path:

@@ -7,7 +7,7 @@ Two checks that a dataset's sensors and labels agree, usable on any nuScenes + O
 * :func:`boxes_in_cameras` - for annotations with visibility above 60%, whether the box centre projects into
   at least one camera image through the written poses and intrinsics.
 
-``python -m occkit.sim.consistency DATA_ROOT [--version V]`` prints both as JSON.
+``python -m occkit.data.consistency DATA_ROOT [--version V]`` prints both as JSON.
 """
 
 from __future__ import annotations
@@ -20,10 +20,16 @@ import numpy as np
 import torch
 
 from occkit.data.tables import NuScenesTables, load_tables
+from occkit.geometry.se3 import transform_from_quaternion
 from occkit.label_space import OCC3D_SPACE
-from occkit.sim.rig import pose_matrix
 
 __all__ = ["lidar_in_occupied", "boxes_in_cameras"]
+
+
+def _pose_matrix(translation, rotation_wxyz) -> np.ndarray:
+    """``(4, 4)`` float64 matrix of a nuScenes record's translation and (w, x, y, z) quaternion."""
+    rotation = torch.as_tensor(rotation_wxyz, dtype=torch.float64)
+    return transform_from_quaternion(rotation, torch.as_tensor(translation, dtype=torch.float64)).numpy()
 
 # A point exactly on a voxel face floors into the upper voxel; it also touches the lower one.
 _FACE_TOLERANCE = 0.01
@@ -53,7 +59,7 @@ def lidar_in_occupied(root: str | Path, version: str) -> dict:
     upper = np.array(OCC3D_SPACE.grid.shape) - 1
     for record, calibration in _key_frame_records(tables, "lidar"):
         points = np.fromfile(root / record["filename"], dtype=np.float32).reshape(-1, 5)[:, :3].astype(np.float64)
-        lidar2ego = pose_matrix(calibration["translation"], calibration["rotation"])
+        lidar2ego = _pose_matrix(calibration["translation"], calibration["rotation"])
         ego = torch.from_numpy(points @ lidar2ego[:3, :3].T + lidar2ego[:3, 3])
         _, inside = OCC3D_SPACE.grid.world_to_index(ego)
         ego = ego[inside]
@@ -83,7 +89,7 @@ def boxes_in_cameras(root: str | Path, version: str) -> dict:
     cameras_of: dict[str, list] = {}
     for record, calibration in _key_frame_records(tables, "camera"):
         pose = poses[record["ego_pose_token"]]
-        cam2global = pose_matrix(pose["translation"], pose["rotation"]) @ pose_matrix(
+        cam2global = _pose_matrix(pose["translation"], pose["rotation"]) @ _pose_matrix(
             calibration["translation"], calibration["rotation"]
         )
         intrinsic = np.array(calibration["camera_intrinsic"])

@@ -1,4 +1,6 @@
-"""Headless matplotlib figures: Agg canvases that need no display and leave pyplot's global state alone."""
+"""Headless matplotlib figures: Agg canvases that need no display and leave pyplot's global state alone.
+
+Every figure of occkit (reports, training curves, visualisations) is made and saved here."""
 
 from __future__ import annotations
 
@@ -10,13 +12,13 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 from PIL import Image
 
-from occkit.viz.palette import EMPTY_COLOR, IGNORE_COLOR, PALETTE, UNOBSERVED_COLOR
+from occkit.classes import EMPTY_COLOR, IGNORE_COLOR, OCC3D_COLORS, UNOBSERVED_COLOR
 
 __all__ = ["MIN_PALETTE_COLORS", "new_figure", "save_figure"]
 
 #: ``(K, 3)`` uint8 colours that palette PNGs keep exactly (sorted rows): classes, map markers and white.
-_EXACT_COLORS = np.unique(np.concatenate((PALETTE, [UNOBSERVED_COLOR, EMPTY_COLOR, IGNORE_COLOR, (255, 255, 255)])),
-                          axis=0).astype(np.uint8)  # fmt: skip
+_MARKERS = [UNOBSERVED_COLOR, EMPTY_COLOR, IGNORE_COLOR, (255, 255, 255)]
+_EXACT_COLORS = np.unique(np.concatenate((OCC3D_COLORS, _MARKERS)), axis=0).astype(np.uint8)
 #: Fewest palette colours :func:`save_figure` accepts: the exact ones and a few for everything else.
 MIN_PALETTE_COLORS = len(_EXACT_COLORS) + 8
 
@@ -33,7 +35,9 @@ def new_figure(width: float, height: float, dpi: float = 100, layout: str | None
     return figure
 
 
-def save_figure(figure: Figure, path: str | Path, dpi: float | None = None, colors: int | None = None) -> Path:
+def save_figure(
+    figure: Figure, path: str | Path, dpi: float | None = None, colors: int | None = None, tight: bool = False
+) -> Path:
     """Write ``figure`` as a PNG (parent folders created) and return the path.
 
     Args:
@@ -42,20 +46,22 @@ def save_figure(figure: Figure, path: str | Path, dpi: float | None = None, colo
         dpi: resolution (default: the figure's).
         colors: if given, store the PNG with a palette of this many colours (at most 256), which makes renders over
             camera photographs several times smaller (for pages and documentation). Pixels of the class and marker
-            colours of :mod:`occkit.viz.palette` (and white) keep their exact colour; the rest of the palette adapts
+            colours of :mod:`occkit.classes` (and white) keep their exact colour; the rest of the palette adapts
             to the image, with dithering.
+        tight: crop the page to what is drawn (matplotlib's ``bbox_inches="tight"``).
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     dpi = dpi if dpi is not None else figure.dpi
+    options = {"dpi": dpi, "facecolor": "white", "bbox_inches": "tight" if tight else None}
     if colors is None:
-        figure.savefig(path, dpi=dpi, facecolor="white")
+        figure.savefig(path, **options)
         return path
     if not MIN_PALETTE_COLORS <= colors <= 256:
         raise ValueError(f"colors must lie in {MIN_PALETTE_COLORS}..256, got {colors}")
     exact = _EXACT_COLORS
     buffer = io.BytesIO()
-    figure.savefig(buffer, format="png", dpi=dpi, facecolor="white")
+    figure.savefig(buffer, format="png", **options)
     with Image.open(buffer) as opened:
         image = opened.convert("RGB")
     # Median cut picks the colours, Floyd-Steinberg dithering maps the image onto them (smooth photographs and colour

@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
+from occkit.figure import new_figure, save_figure
 from occkit.viz.bev import bev_image
 from occkit.viz.cameras import SURROUND_LAYOUT
 
@@ -26,10 +27,6 @@ def contact_sheet(root: str | Path, out: str | Path, samples: int = 3, scene: st
         samples: key frames to show.
         scene: scene name (default: the first scene).
     """
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
     from PIL import Image
 
     root = Path(root)
@@ -40,7 +37,7 @@ def contact_sheet(root: str | Path, out: str | Path, samples: int = 3, scene: st
     frames = list(infos[scene].values())
     chosen = [frames[i] for i in np.linspace(0, len(frames) - 1, min(samples, len(frames))).round().astype(int)]
 
-    figure = plt.figure(figsize=(20, 4.4 * len(chosen)), dpi=100)
+    figure = new_figure(20, 4.4 * len(chosen), dpi=100)
     grid = figure.add_gridspec(2 * len(chosen), 4, width_ratios=(1, 1, 1, 1.15), wspace=0.02, hspace=0.02)
     for row, frame in enumerate(chosen):
         for line, names in enumerate(SURROUND_LAYOUT):
@@ -61,8 +58,4 @@ def contact_sheet(root: str | Path, out: str | Path, samples: int = 3, scene: st
             2, 2, f"Occ3D labels seen by the cameras\nts {frame['timestamp']}", fontsize=8, va="top", color="white"
         )
         axis.set_axis_off()
-    out = Path(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    figure.savefig(out, bbox_inches="tight")
-    plt.close(figure)
-    return out
+    return save_figure(figure, out, tight=True)
