@@ -343,18 +343,6 @@ def _add_train(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-progress", action="store_true", help="no progress bar (logs still written)")
 
 
-def _experiment(config: str, overrides: list[str]):
-    from occkit import zoo
-    from occkit.engine.experiment import experiment_from_dict, load_experiment
-
-    path = Path(config)
-    if not path.exists() and config in zoo.names():
-        return experiment_from_dict(zoo.experiment(config).to_dict(), f"zoo entry {config}", overrides)
-    if not path.exists():
-        raise FileNotFoundError(f"config {config} does not exist (zoo names: {', '.join(zoo.names())})")
-    return load_experiment(path, overrides)
-
-
 def _is_main_process() -> bool:
     """False on the ranks other than 0 of a ``torchrun`` launch."""
     import os
@@ -372,19 +360,21 @@ def _add_experiment_overrides(parser: argparse.ArgumentParser) -> None:
 
 
 def _load_trained(args: argparse.Namespace, device):
+    from occkit import zoo
     from occkit.engine.evaluate import load_trained
 
     if args.config is not None:
-        return load_trained(args.ckpt, device, experiment=_experiment(args.config, args.set))
+        return load_trained(args.ckpt, device, experiment=zoo.load_experiment(args.config, args.set))
     return load_trained(args.ckpt, device, overrides=args.set)
 
 
 def _run_train(args: argparse.Namespace) -> int:
+    from occkit import zoo
     from occkit.engine.train import train
 
     output_folder(args.out, "--out")
     check_device(args.device)
-    experiment = _experiment(args.config, args.set)
+    experiment = zoo.load_experiment(args.config, args.set)
     data_root = Path(experiment.data.root)
     if not data_root.is_dir():
         raise FileNotFoundError(f"data root {data_root} does not exist (set data.root, or write a synthetic dataset "

@@ -158,8 +158,8 @@ def _train_score_report(out: Path, data: Path, models: dict[str, int], started: 
 
     from occkit import zoo
     from occkit.engine.evaluate import dataset_ray_origins, evaluate_model, evaluation_dataset, load_trained
-    from occkit.engine.experiment import replace_train
     from occkit.engine.train import train
+    from occkit.experiment import replace_train
 
     out.mkdir(parents=True, exist_ok=True)
     results, trained, datasets = {}, {}, {}

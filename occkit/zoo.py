@@ -7,22 +7,25 @@
 
 Every entry has a YAML twin in ``configs/NAME.yaml``: the whole experiment (``architecture``, ``model``, ``data``,
 ``train``), written by :func:`config_yaml` and kept equal to :func:`experiment` by a test, so a config file read with
-``occkit.engine.experiment.load_experiment`` and a name given to :func:`build` mean the same model.
+:func:`load_experiment` and a name given to :func:`build` mean the same model.
 """
 
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
+from pathlib import Path
 from typing import Any
 
 from torch import nn
 
+from occkit import experiment as _experiment
 from occkit.config import ConfigError
+from occkit.experiment import Experiment, TrainConfig, experiment_yaml
 from occkit.label_space import OCC3D_SPACE, SURROUNDOCC_SPACE
 
 __all__ = ["names", "description", "model_config", "experiment", "build", "build_from_config", "config_yaml",
-           "ARCHITECTURES"]
+           "config_class", "experiment_from_dict", "load_experiment", "ARCHITECTURES"]
 
 
 def _daocc_classes() -> tuple[type, type]:
@@ -235,10 +238,9 @@ def _data(family: str, tiny: bool) -> Any:
     )  # fmt: skip
 
 
-def _train(family: str, tiny: bool) -> Any:
+def _train(family: str, tiny: bool) -> TrainConfig:
     """The papers' schedules (DAOcc: AdamW 2e-4, clip 35, fp16; FlashOcc: 1e-4, clip 5; DA-Occ: 1e-4, wd 0.05),
     or a short CPU schedule for tiny entries."""
-    from occkit.engine.experiment import TrainConfig
 
     if tiny:
         return TrainConfig(epochs=5, batch_size=1, lr=2e-3, warmup_steps=50, grad_clip=35.0, ema_decay=0.0,
@@ -287,19 +289,45 @@ def model_config(name: str) -> tuple[str, Any]:
     return architecture, factory()
 
 
-def experiment(name: str) -> Any:
+def experiment(name: str) -> Experiment:
     """The full experiment (model, data, training) of a zoo entry, as ``configs/NAME.yaml`` holds it."""
-    from occkit.engine.experiment import Experiment
-
     architecture, factory, family = _entry(name)
     tiny = name.endswith("_tiny")
     return Experiment(architecture, factory(), _data(family, tiny), _train(family, tiny))
 
 
-def build_from_config(architecture: str, cfg: Any) -> nn.Module:
-    """The model of ``architecture`` built from ``cfg``."""
+def config_class(architecture: str) -> type:
+    """The model config dataclass of ``architecture``."""
     if architecture not in ARCHITECTURES:
         raise ConfigError(f"architecture: unknown {architecture!r}; known: {', '.join(sorted(ARCHITECTURES))}")
+    return ARCHITECTURES[architecture]()[0]
+
+
+def experiment_from_dict(data: Any, where: str = "experiment", overrides: Sequence[str] = ()) -> Experiment:
+    """Check and build an experiment of any zoo architecture from plain data (a checkpoint's, a YAML file's);
+    ``overrides`` are ``section.key=value`` strings. Errors name ``where`` and the key."""
+    classes = {name: classes()[0] for name, classes in ARCHITECTURES.items()}
+    return _experiment.experiment_from_dict(data, classes, where, overrides)
+
+
+def load_experiment(source: str | Path, overrides: Sequence[str] = ()) -> Experiment:
+    """The experiment of a YAML file, or of the zoo entry of that name when no such file exists, with overrides.
+
+    Raises:
+        ConfigError: the file or an override is invalid (the message names the file and the key).
+        FileNotFoundError: neither a file nor a zoo name.
+    """
+    path = Path(source)
+    if not path.exists() and str(source) in _ZOO:
+        return experiment_from_dict(experiment(str(source)).to_dict(), f"zoo entry {source}", overrides)
+    if not path.exists():
+        raise FileNotFoundError(f"config {source} does not exist (zoo names: {', '.join(names())})")
+    return experiment_from_dict(_experiment.read_experiment_file(path), str(path), overrides)
+
+
+def build_from_config(architecture: str, cfg: Any) -> nn.Module:
+    """The model of ``architecture`` built from ``cfg``."""
+    config_class(architecture)  # an unknown name is a ConfigError
     _, model_class = ARCHITECTURES[architecture]()
     return model_class(cfg)
 
@@ -311,7 +339,5 @@ def build(name: str) -> nn.Module:
 
 def config_yaml(name: str) -> str:
     """The text of ``configs/NAME.yaml``: a description, then the commented experiment."""
-    from occkit.engine.experiment import experiment_yaml
-
     header = f"# {name}: {description(name)}\n# occkit train --config configs/{name}.yaml --out runs/{name}"
     return experiment_yaml(experiment(name), header)

@@ -10,10 +10,10 @@ from conftest import fit_batch, parameters_without_gradient
 
 from occkit import zoo
 from occkit.config import ConfigError
-from occkit.engine.experiment import load_experiment
 from occkit.models.complexity import count_macs, count_parameters
 from occkit.models.daocc import DAOcc, DAOccConfig
 from occkit.types import OccPrediction
+from occkit.zoo import load_experiment
 
 
 def tiny(**changes) -> DAOcc:

@@ -21,9 +21,9 @@ from occkit.data.collate import collate
 from occkit.data.dataset import DatasetConfig, OccupancyDataset, SampleError
 from occkit.data.transforms import BevAugConfig, ImageAugConfig
 from occkit.engine.evaluate import evaluate_model, evaluation_dataset, load_trained
-from occkit.engine.experiment import load_experiment
 from occkit.engine.train import train
 from occkit.sim.generate import SimConfig, simulate_dataset
+from occkit.zoo import load_experiment
 
 REPO = Path(__file__).resolve().parents[1]
 CAMERAS = ("CAM_FRONT", "CAM_BACK")

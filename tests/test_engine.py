@@ -39,6 +39,7 @@ from conftest import torch_threads
 from occkit.engine.checkpoint import atomic_save, latest_checkpoint, load_checkpoint, save_checkpoint
 from occkit.engine.train import lr_factor
 from occkit.sim.generate import SimConfig, simulate_dataset
+from occkit.zoo import load_experiment
 
 REPO = Path(__file__).resolve().parents[1]
 CAMERAS = ("CAM_FRONT", "CAM_BACK")
@@ -323,10 +324,9 @@ def test_killed_and_resumed_run_is_bitwise_the_uninterrupted_one(resumed):
 
 
 def test_resume_auto_after_a_kill_before_the_first_checkpoint_starts_afresh(data, tmp_path):
-    from occkit.cli import _experiment
     from occkit.engine.train import train
 
-    experiment = _experiment("flashocc_tiny", [f"data.root={data}", *SMALL, *BITWISE_SMALL, "train.max_steps=3",
+    experiment = load_experiment("flashocc_tiny", [f"data.root={data}", *SMALL, *BITWISE_SMALL, "train.max_steps=3",
                                              "train.val_every=-1"])  # fmt: skip
     out = tmp_path / "run"
 
@@ -460,13 +460,12 @@ def test_what_separates_two_processes_from_one_batch(data):
     weight), so in a pair each sample weighs by its share of that sum, under DDP by one half; and BatchNorm normalises
     with the statistics of the local batch (one sample per process under DDP)."""
     from occkit import zoo
-    from occkit.cli import _experiment
     from occkit.data.collate import collate
     from occkit.data.dataset import OccupancyDataset
     from occkit.engine.distributed import EpochSampler
 
     # Cross-entropy only: the Lovasz term is a loss of the whole batch, which no per-sample weighting decomposes.
-    experiment = _experiment("flashocc_tiny", [f"data.root={data}", *SMALL, "model.occupancy.lovasz_weight=0.0"])
+    experiment = load_experiment("flashocc_tiny", [f"data.root={data}", *SMALL, "model.occupancy.lovasz_weight=0.0"])
     dataset = OccupancyDataset(experiment.data)
     first = list(EpochSampler(len(dataset), 2, seed=experiment.train.seed))[:2]  # the first global batch
     samples = [dataset[i] for i in first]

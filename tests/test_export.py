@@ -236,7 +236,7 @@ def test_non_standard_operators_are_rejected(tmp_path):
 def save_checkpoint(name: str, path, **occupancy_changes) -> str:
     """A checkpoint of zoo entry ``name`` (random weights), its occupancy head config changed by the keywords."""
     from occkit.engine.checkpoint import FORMAT, atomic_save
-    from occkit.engine.experiment import Experiment
+    from occkit.experiment import Experiment
 
     experiment = zoo.experiment(name)
     model_config = dataclasses.replace(experiment.model, occupancy=dataclasses.replace(experiment.model.occupancy,

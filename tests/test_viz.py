@@ -316,7 +316,7 @@ def test_cli_renders_ground_truth_predictions_and_page(data, tmp_path, capsys):
 def test_cli_predicts_with_a_checkpoint(data, tmp_path):
     from occkit import zoo
     from occkit.engine.checkpoint import FORMAT, atomic_save
-    from occkit.engine.experiment import experiment_from_dict
+    from occkit.zoo import experiment_from_dict
 
     overrides = ["data.cameras=[CAM_FRONT, CAM_BACK]", "data.image_aug.final_size=[64, 176]",
                  "model.lss.image_size=[64, 176]", "model.image.out_stages=[3]", "model.bev.channels=[16, 32, 64]",

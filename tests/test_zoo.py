@@ -13,7 +13,6 @@ import torch
 from conftest import make_batch, parameters_without_gradient
 
 from occkit import zoo
-from occkit.engine.experiment import load_experiment
 from occkit.label_space import label_space
 from occkit.models.complexity import count_parameters
 
@@ -26,7 +25,7 @@ def test_every_zoo_entry_builds_and_matches_its_yaml(name):
     assert count_parameters(model) > 0
     path = CONFIGS / f"{name}.yaml"
     assert path.read_text() == zoo.config_yaml(name), f"{path} is stale: regenerate it with scripts/write_configs.py"
-    assert load_experiment(path) == zoo.experiment(name)
+    assert zoo.load_experiment(path) == zoo.experiment(name)
 
 
 @pytest.mark.parametrize("name", zoo.names())

@@ -202,9 +202,10 @@ def _defaults(architecture: str) -> dict:
     """The experiment of ``architecture`` with every option at its default (sections model, data, train)."""
     from occkit.config import to_dict
     from occkit.data.dataset import DatasetConfig
-    from occkit.engine.experiment import TrainConfig, model_config_class
+    from occkit.experiment import TrainConfig
+    from occkit.zoo import config_class
 
-    return {"architecture": architecture, "model": to_dict(model_config_class(architecture, "checkpoint")()),
+    return {"architecture": architecture, "model": to_dict(config_class(architecture)()),
             "data": to_dict(DatasetConfig()), "train": to_dict(TrainConfig())}  # fmt: skip
 
 

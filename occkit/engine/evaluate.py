@@ -22,9 +22,10 @@ from occkit.data.dataset import OccupancyDataset
 from occkit.data.names import path_under, safe_name
 from occkit.engine import distributed
 from occkit.engine.checkpoint import check_compatible, load_checkpoint
-from occkit.engine.experiment import Experiment, experiment_from_dict
+from occkit.experiment import Experiment
 from occkit.metrics.confusion import OccupancyMetric
 from occkit.metrics.rayiou import RAYIOU_THRESHOLDS, rayiou, rayiou_from_counts
+from occkit.zoo import experiment_from_dict
 
 __all__ = [
     "evaluate_model",

@@ -39,8 +39,8 @@ from occkit.engine.checkpoint import (
     set_rng_state,
 )
 from occkit.engine.evaluate import evaluate_model
-from occkit.engine.experiment import Experiment, check_label_space, experiment_yaml
 from occkit.engine.run_log import RunLog, plot_losses
+from occkit.experiment import Experiment, check_label_space, experiment_yaml
 from occkit.metrics.evaluate import plot_per_class_iou
 from occkit.types import Batch
 

@@ -6,13 +6,15 @@
     train: {...}               # TrainConfig below
 
 ``configs/NAME.yaml`` holds one per zoo entry (``occkit.zoo.experiment(NAME)``); ``occkit train --config FILE
---set train.lr=2e-4`` reads one. Every key is checked: a typo is an error naming the file and the valid keys.
+--set train.lr=2e-4`` reads one (``occkit.zoo.load_experiment``, which knows the architectures). Every key is
+checked: a typo is an error naming the file and the valid keys. This module holds settings only, no model code, so
+that every layer above it (models, zoo, engine) can speak of experiments.
 """
 
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
@@ -24,7 +26,7 @@ from occkit.data.dataset import DatasetConfig
 from occkit.geometry.grid import VoxelGrid
 from occkit.label_space import LabelSpace, label_space
 
-__all__ = ["TrainConfig", "Experiment", "check_label_space", "load_experiment", "experiment_from_dict",
+__all__ = ["TrainConfig", "Experiment", "check_label_space", "experiment_from_dict", "read_experiment_file",
            "experiment_yaml", "replace_train"]
 
 
@@ -97,26 +99,24 @@ class Experiment:
                 "train": to_dict(self.train)}  # fmt: skip
 
 
-def model_config_class(architecture: str, where: str) -> type:
-    """The model config dataclass of an architecture; ``where`` names the source in the error."""
-    from occkit.zoo import ARCHITECTURES
+def experiment_from_dict(
+    data: Any, config_classes: Mapping[str, type], where: str = "experiment", overrides: Sequence[str] = ()
+) -> Experiment:
+    """Check and build an experiment from plain data; ``overrides`` are ``section.key=value`` strings.
 
-    if architecture not in ARCHITECTURES:
-        raise ConfigError(f"{where}: unknown architecture {architecture!r}; known: {', '.join(sorted(ARCHITECTURES))}")
-    return ARCHITECTURES[architecture]()[0]
-
-
-def experiment_from_dict(data: Any, where: str = "experiment", overrides: Sequence[str] = ()) -> Experiment:
-    """Check and build an experiment from plain data; ``overrides`` are ``section.key=value`` strings."""
+    ``config_classes`` maps each architecture name to its model config dataclass (``occkit.zoo`` passes the zoo's).
+    """
     if not isinstance(data, dict):
         raise ConfigError(f"{where}: expected a mapping with architecture, model, data and train")
     unknown = set(data) - {"architecture", "model", "data", "train"}
     if unknown or "architecture" not in data:
         raise ConfigError(f"{where}: an experiment has the keys architecture, model, data, train; got {sorted(data)}")
-    model_class = model_config_class(data["architecture"], where)
+    architecture = data["architecture"]
+    if architecture not in config_classes:
+        raise ConfigError(f"{where}: unknown architecture {architecture!r}; known: {', '.join(sorted(config_classes))}")
     parsed = Experiment(
-        architecture=data["architecture"],
-        model=from_dict(model_class, data.get("model") or {}, f"{where}: model"),
+        architecture=architecture,
+        model=from_dict(config_classes[architecture], data.get("model") or {}, f"{where}: model"),
         data=from_dict(DatasetConfig, data.get("data") or {}, f"{where}: data"),
         train=from_dict(TrainConfig, data.get("train") or {}, f"{where}: train"),
     )
@@ -125,7 +125,18 @@ def experiment_from_dict(data: Any, where: str = "experiment", overrides: Sequen
         return parsed
     if any(o.split("=", 1)[0].strip() == "architecture" for o in overrides):
         raise ConfigError("the architecture cannot be overridden with --set: use another config file")
-    return experiment_from_dict(override_dict(parsed.to_dict(), overrides), f"{where} (after --set)")
+    return experiment_from_dict(override_dict(parsed.to_dict(), overrides), config_classes, f"{where} (after --set)")
+
+
+def read_experiment_file(path: str | Path) -> Any:
+    """The plain data of an experiment YAML file; errors name the file."""
+    path = Path(path)
+    try:
+        return yaml.safe_load(path.read_text())
+    except OSError as error:
+        raise ConfigError(f"cannot read config {path}: {error.strerror}") from error
+    except yaml.YAMLError as error:
+        raise ConfigError(f"{path}: not valid YAML: {error}") from error
 
 
 def check_label_space(model: Any, name: str, where: str = "experiment") -> LabelSpace:
@@ -153,18 +164,6 @@ def check_label_space(model: Any, name: str, where: str = "experiment") -> Label
         raise ConfigError(f"{where}: model.range_extension.label_frame is {extension.label_frame} but "
                           f"{space.name} labels live in the {space.frame} frame")  # fmt: skip
     return space
-
-
-def load_experiment(path: str | Path, overrides: Sequence[str] = ()) -> Experiment:
-    """Read an experiment YAML and apply overrides; errors name the file and the key."""
-    path = Path(path)
-    try:
-        data = yaml.safe_load(path.read_text())
-    except OSError as error:
-        raise ConfigError(f"cannot read config {path}: {error.strerror}") from error
-    except yaml.YAMLError as error:
-        raise ConfigError(f"{path}: not valid YAML: {error}") from error
-    return experiment_from_dict(data, str(path), overrides)
 
 
 def experiment_yaml(experiment: Experiment, header: str = "") -> str:
