@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import contextlib
 import copy
-import dataclasses
 import gc
 import os
 import platform
@@ -42,11 +41,15 @@ import torch
 from torch import Tensor, nn
 
 from occkit import zoo
+from occkit.engine.reference_frame import load_key_frame, simulate_reference_world
+from occkit.metrics.realtime import rt_miou_table
+from occkit.models.base import Architecture
+from occkit.models.complexity import count_macs, count_parameters
+from occkit.models.inference import OPTIMIZATIONS, apply_optimization, check_optimizations, prepare_for_inference
 from occkit.types import Batch
 
 __all__ = [
     "DEFAULT_DATA",
-    "STAGES",
     "PRECISIONS",
     "BenchConfig",
     "run_bench",
@@ -62,32 +65,6 @@ __all__ = [
 
 #: Where the benchmark world is simulated when no dataset is given.
 DEFAULT_DATA = Path("data/bench-1600x900")
-
-#: Stages of each architecture: stage name -> the model's child modules that make it up. Work a model does outside
-#: these modules (DA-Occ's voxel pooling in its own forward, geometry planning) is reported as ``other``.
-STAGES: dict[str, dict[str, tuple[str, ...]]] = {
-    "flashocc": {
-        "image_encoder": ("image_encoder",),
-        "view_transform": ("view_transform",),
-        "fusion_bev_encoder": ("bev_encoder",),
-        "heads": ("occupancy_head",),
-    },
-    "da_occ": {
-        "image_encoder": ("image_encoder",),
-        "view_transform": ("depth_net", "height_net"),
-        # DA-Occ's decoders: the DACs on F_bev and on the height volume, its reduction and the fusing 1x1 conv.
-        "fusion_bev_encoder": ("bev_encoder", "bev_horizontal", "bev_vertical", "height_vertical", "height_reduce",
-                               "fuse"),
-        "heads": ("occupancy_head",),
-    },
-    "daocc": {
-        "image_encoder": ("image_encoder",),
-        "view_transform": ("view_transform",),
-        "lidar_encoder": ("lidar_encoder",),
-        "fusion_bev_encoder": ("fuser", "bev_encoder"),
-        "heads": ("range_extension", "occupancy_head"),
-    },
-}  # fmt: skip
 
 #: ``--precision`` -> dtype of autocast and of the GEMM yardstick.
 PRECISIONS = {"fp32": torch.float32, "bf16": torch.bfloat16, "fp16": torch.float16}
@@ -165,41 +142,25 @@ class BenchConfig:
         if isinstance(self.optimizations, str) and self.optimizations != "auto":
             raise ValueError(f"optimizations must be 'auto' or a sequence of names, got {self.optimizations!r}")
         if not isinstance(self.optimizations, str):
-            from occkit.models.inference import check_optimizations
-
             object.__setattr__(self, "optimizations", check_optimizations(self.optimizations))
 
 
 # ------------------------------------------------------------------------------------------------------ input
-def _simulate_world(root: Path, log: Callable[[str], None]) -> None:
-    from occkit.sim.generate import SimConfig, simulate_dataset
-
-    log(f"simulating a one-scene 1600x900 world into {root} (once; about a minute)")
-    # Three key frames at 2 Hz: the last one has 20 LiDAR sweeps behind it, more than any model asks for.
-    simulate_dataset(SimConfig(scenes=1, frames=3, image_size=(1600, 900)), root, workers=1)
-
-
 def load_sample(model: str, data: str | Path | None = None, batch_size: int = 1,
                 log: Callable[[str], None] = print) -> Batch:  # fmt: skip
     """The last key frame of ``data`` at ``model``'s input setting (test transform), repeated ``batch_size`` times.
 
     ``data`` None uses :data:`DEFAULT_DATA`, simulating it first if absent; any other missing folder is an error.
     """
-    from occkit.data.collate import collate
-    from occkit.data.dataset import OccupancyDataset
-
-    root = DEFAULT_DATA if data is None else Path(data)
-    if not root.exists():
-        if data is not None:
-            raise FileNotFoundError(f"dataset {root} does not exist (leave out --data to simulate {DEFAULT_DATA})")
-        _simulate_world(root, log)
     settings = zoo.experiment(model).data
-    settings = dataclasses.replace(settings, root=str(root), index=None, split="all", augment=False, occupancy=False,
-                                   boxes=False, depth_downsample=0)  # fmt: skip
-    dataset = OccupancyDataset(settings)
-    # The last key frame has the longest history of LiDAR sweeps, so multi-sweep models get all they ask for.
-    sample = dataset[len(dataset) - 1]
-    return collate([sample] * batch_size)
+    root = DEFAULT_DATA if data is None else Path(data)
+    if data is None and not root.exists():
+        log(f"simulating a one-scene 1600x900 world into {root} (once; about a minute)")
+        # Three key frames at 2 Hz: the last one has 20 LiDAR sweeps behind it, more than any model asks for.
+        simulate_reference_world(root, (1600, 900), frames=3, version=settings.version)
+    elif not root.exists():
+        raise FileNotFoundError(f"dataset {root} does not exist (leave out --data to simulate {DEFAULT_DATA})")
+    return load_key_frame(settings, root, batch_size=batch_size)[0]
 
 
 # ---------------------------------------------------------------------------------------------------- timing
@@ -261,12 +222,11 @@ class GemmProbe:
 
 
 def stage_modules(architecture: str, model: nn.Module) -> dict[str, list[nn.Module]]:
-    """Stage name -> the model's child modules in it (:data:`STAGES`); stages the model lacks are left out."""
-    if architecture not in STAGES:
-        raise ValueError(f"no stage map for architecture {architecture!r}; known: {', '.join(STAGES)}")
+    """Stage name -> the model's child modules in it (the architecture's ``stages``, declared in its model file);
+    stages the model lacks are left out."""
     children = dict(model.named_children())
     stages = {}
-    for stage, names in STAGES[architecture].items():
+    for stage, names in zoo.architecture(architecture).stages.items():
         modules = [children[name] for name in names if name in children]
         if modules:
             stages[stage] = modules
@@ -422,8 +382,6 @@ def paired_times(first: Callable[[], float], second: Callable[[], float], pairs:
 def _trial(model: nn.Module, name: str, runner: ModelRunner) -> tuple[nn.Module | None, dict]:
     """A copy of ``model`` with the step ``name`` applied and one pass run (for ``compile``: the compilation), and the
     step's record. A failing ``compile`` gives no model and the error in the record; other failures are bugs."""
-    from occkit.models.inference import apply_optimization
-
     trial = copy.deepcopy(model)
     step: dict = {"optimization": name}
     try:
@@ -441,8 +399,6 @@ def _trial(model: nn.Module, name: str, runner: ModelRunner) -> tuple[nn.Module 
 def _ablate(model: nn.Module, runner: ModelRunner, cfg: BenchConfig,
             log: Callable[[str], None]) -> tuple[nn.Module, list]:  # fmt: skip
     """Greedy fast path: each optimization on top of the kept ones, kept when it speeds the model up."""
-    from occkit.models.inference import OPTIMIZATIONS
-
     tolerance = 1e-3 if cfg.precision == "fp32" else 5e-2
     reference = runner.forward(model)
     for _ in range(cfg.warmup):
@@ -488,16 +444,14 @@ def _apply_given(model: nn.Module, runner: ModelRunner, cfg: BenchConfig,
 
 
 def _count(model: nn.Module, runner: ModelRunner, detect: bool = False):
-    from occkit.models.complexity import count_macs
-
     return count_macs(model, lambda: runner.forward(model, detect=detect))
 
 
-def _stage_report(architecture: str, model: nn.Module, runner: ModelRunner, cfg: BenchConfig, macs,
+def _stage_report(architecture: Architecture, model: nn.Module, runner: ModelRunner, cfg: BenchConfig, macs,
                   gemm_peak: float) -> tuple[dict, float]:  # fmt: skip
     """Per-stage ms, MACs per sample, achieved GFLOP/s and GEMM fraction, from the hooked pass with the median total
     (so the stages and ``other`` add up to that pass); and that pass's total in ms."""
-    stages = stage_modules(architecture, model)
+    stages = stage_modules(architecture.name, model)
     totals, breakdowns = [], []
     with StageTimer(stages, runner.synchronize) as timer:
         for _ in range(cfg.stage_iters):
@@ -508,7 +462,7 @@ def _stage_report(architecture: str, model: nn.Module, runner: ModelRunner, cfg:
     total, seconds = totals[median_index], breakdowns[median_index]
     report = {}
     for stage, stage_seconds in seconds.items():
-        stage_macs = sum(macs.by_module.get(child, 0) for child in STAGES[architecture][stage]) // cfg.batch_size
+        stage_macs = sum(macs.by_module.get(child, 0) for child in architecture.stages[stage]) // cfg.batch_size
         report[stage] = _stage_entry(stage_seconds, stage_macs, total, cfg.batch_size, gemm_peak)
     other_macs = macs.total // cfg.batch_size - sum(entry["macs"] for entry in report.values())
     report["other"] = _stage_entry(total - sum(seconds.values()), other_macs, total, cfg.batch_size, gemm_peak)
@@ -531,10 +485,6 @@ def _stage_entry(seconds: float, macs: int, total: float, batch_size: int, gemm_
 
 def run_bench(cfg: BenchConfig, log: Callable[[str], None] = print) -> dict:
     """Run the benchmark of ``cfg`` and return its JSON-ready result (see the module docstring for the steps)."""
-    from occkit.metrics.realtime import rt_miou_table
-    from occkit.models.complexity import count_parameters
-    from occkit.models.inference import prepare_for_inference
-
     device = torch.device(cfg.device)
     with _run_settings(device, cfg.threads):
         torch.manual_seed(0)
@@ -569,7 +519,7 @@ def run_bench(cfg: BenchConfig, log: Callable[[str], None] = print) -> dict:
         result.update(_time_model(model, runner, cfg, device, macs.total))
         log(f"{cfg.model}: {cfg.stage_iters} passes with stage hooks")
         result["stages"], result["stages_total_ms"] = _stage_report(
-            architecture, model, runner, cfg, macs, result["gemm_peak_gflops"]
+            zoo.architecture(architecture), model, runner, cfg, macs, result["gemm_peak_gflops"]
         )
         # Two views of the stage that falls furthest short: the lowest GEMM fraction (among stages with MACs), and
         # the most time lost against the GEMM rate (which also weighs how much of the pass the stage is).

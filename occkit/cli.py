@@ -482,7 +482,8 @@ def _run_predict(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from occkit.engine import distributed
-    from occkit.engine.evaluate import evaluation_dataset, predict_to_folder
+    from occkit.engine.evaluate import evaluation_dataset
+    from occkit.engine.predict import predict_to_folder
 
     _check_trained_run_args(args)
     context = distributed.setup(args.device)  # under torchrun each rank writes the files of its share
@@ -533,7 +534,7 @@ def _add_export(parser: argparse.ArgumentParser) -> None:
                         help="nuScenes-layout dataset whose rig the graph is made for (default: a one-scene "
                              "synthetic world generated in a temporary folder)")
     parser.add_argument("--sample", type=integer(0), default=None,
-                        help="key frame of --data (split all) used as the reference (default: the second)")
+                        help="key frame of --data (split all) used as the reference (default: the last)")
     parser.add_argument("--opset", type=integer(18), default=18, help="ONNX opset, 18 or newer (default 18)")
     parser.add_argument("--out", type=Path, required=True, help="the .onnx file; the report goes to FILE.json")
     parser.add_argument("--no-check", action="store_true", help="skip the onnxruntime parity check and timings")

@@ -24,6 +24,7 @@ import inspect
 import textwrap
 import types
 import typing
+import warnings
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any, TypeVar
@@ -151,7 +152,9 @@ def from_dict(cls: type[C], data: Mapping[str, Any], where: str = "config") -> C
     """Build config ``cls`` from a mapping, checking every key and type.
 
     Missing keys take the field defaults; unknown keys and wrong types raise :class:`ConfigError` naming the
-    dotted key (``where`` is the prefix used in messages, e.g. the file name).
+    dotted key (``where`` is the prefix used in messages, e.g. the file name). Keys a config class lists in its
+    ``RETIRED_KEYS`` (key -> what replaced it) are skipped, so older files and checkpoints still load; a true value
+    warns.
     """
     if not dataclasses.is_dataclass(cls):
         raise TypeError(f"{cls!r} is not a dataclass")
@@ -159,8 +162,13 @@ def from_dict(cls: type[C], data: Mapping[str, Any], where: str = "config") -> C
         raise ConfigError(f"{where}: expected a mapping for {cls.__name__}, got {data!r}")
     fields = {f.name: f for f in dataclasses.fields(cls) if f.init}
     hints = _hints(cls)
+    retired = getattr(cls, "RETIRED_KEYS", {})
     kwargs = {}
     for key, value in data.items():
+        if key in retired and key not in fields:
+            if value:  # an older file asked for the behaviour the key used to switch on
+                warnings.warn(f"{where}.{key} is no longer a config key and is ignored: {retired[key]}", stacklevel=2)
+            continue
         if key not in fields:
             raise ConfigError(_unknown_key_message(str(key), where, list(fields)))
         kwargs[key] = _convert(value, hints[key], f"{where}.{key}")

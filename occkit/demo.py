@@ -15,8 +15,19 @@ import time
 from pathlib import Path
 
 import numpy as np
+import torch
+from tqdm import tqdm
 
+from occkit import zoo
+from occkit.data.collate import collate
+from occkit.engine.evaluate import dataset_ray_origins, evaluate_model, evaluation_dataset, load_trained
+from occkit.engine.train import train
+from occkit.experiment import replace_train
+from occkit.figure import new_figure, save_figure
 from occkit.label_space import OCC3D_SPACE
+from occkit.metrics.confusion import OccupancyMetric
+from occkit.sim.generate import SimConfig, simulate_dataset
+from occkit.viz.bev import bev_image
 
 __all__ = ["run_demo", "DEMO_MODELS", "DEMO_WORLD"]
 
@@ -33,10 +44,6 @@ def _say(text: str) -> None:
 
 
 def _ensure_world(data: Path) -> None:
-    from tqdm import tqdm
-
-    from occkit.sim.generate import SimConfig, simulate_dataset
-
     if data.exists():
         _say(f"using the synthetic world in {data}")
         return
@@ -49,8 +56,6 @@ def _ensure_world(data: Path) -> None:
 
 def _baseline(dataset) -> dict:
     """Scores of predicting the training split's most frequent class (free space) everywhere."""
-    from occkit.metrics.confusion import OccupancyMetric
-
     metric = OccupancyMetric.for_space(DEMO_SPACE)
     for record_index in range(len(dataset)):
         sample = dataset[record_index]
@@ -65,12 +70,6 @@ def _render(models: dict, datasets: dict, out: Path, frames: int = 3) -> Path:
     ``datasets`` holds each model's own view of the validation split (a camera-only model loads no LiDAR); they
     list the same frames in the same order.
     """
-    import torch
-
-    from occkit.data.collate import collate
-    from occkit.figure import new_figure, save_figure
-    from occkit.viz.bev import bev_image
-
     first = next(iter(datasets.values()))
     picks = np.linspace(0, len(first) - 1, frames).round().astype(int)
     fig = new_figure(3.2 * (1 + len(models)), 3.3 * frames)
@@ -108,7 +107,7 @@ def _report(out: Path, results: dict, baseline: dict, seconds: float, render: Pa
         "| --- | --- | --- | --- | --- | --- | --- |",
     ]
     for name, result in results.items():
-        inputs = "cameras + LiDAR" if name.startswith("daocc") else "cameras"
+        inputs = " + ".join(zoo.model_config(name)[1].sensors)
         lines.append(f"| `{name}` | {inputs} | {result['steps']} | {result['train_seconds'] / 60:.1f} min | "
                      f"{100 * result['miou']:.1f} | {100 * result['iou']:.1f} | {100 * result['rayiou']:.1f} |")
     lines.append(f"| most frequent class (free) | none | - | - | {100 * baseline['miou']:.1f} | "
@@ -138,8 +137,6 @@ def _training_time(folder: Path, seconds: float) -> float:
 
 def run_demo(out: str | Path, data: str | Path, models: dict[str, int] | None = None) -> Path:
     """Run the demo into ``out`` (a new or earlier demo folder) on ``data``; returns the report's path."""
-    import torch
-
     started = time.perf_counter()
     out, data = Path(out), Path(data)
     models = DEMO_MODELS if models is None else models
@@ -154,13 +151,6 @@ def run_demo(out: str | Path, data: str | Path, models: dict[str, int] | None = 
 
 
 def _train_score_report(out: Path, data: Path, models: dict[str, int], started: float) -> Path:
-    import torch
-
-    from occkit import zoo
-    from occkit.engine.evaluate import dataset_ray_origins, evaluate_model, evaluation_dataset, load_trained
-    from occkit.engine.train import train
-    from occkit.experiment import replace_train
-
     out.mkdir(parents=True, exist_ok=True)
     results, trained, datasets = {}, {}, {}
     for name, steps in models.items():

@@ -23,11 +23,12 @@ import yaml
 
 from occkit.config import ConfigError, dump_yaml, from_dict, override_dict, to_dict
 from occkit.data.dataset import DatasetConfig
+from occkit.data.transforms import ImageAugConfig
 from occkit.geometry.grid import VoxelGrid
 from occkit.label_space import LabelSpace, label_space
 
 __all__ = ["TrainConfig", "Experiment", "check_label_space", "experiment_from_dict", "read_experiment_file",
-           "experiment_yaml", "replace_train"]
+           "experiment_yaml", "replace_train", "CPU_ROOT", "CPU_TRAIN", "cpu_data"]
 
 
 @dataclass(frozen=True)
@@ -182,3 +183,19 @@ def experiment_yaml(experiment: Experiment, header: str = "") -> str:
 def replace_train(experiment: Experiment, **changes: Any) -> Experiment:
     """A copy with some training settings changed."""
     return dataclasses.replace(experiment, train=dataclasses.replace(experiment.train, **changes))
+
+
+# ------------------------------------------------------------------------------------ CPU-sized zoo entries
+#: Where the CPU-sized (``_tiny``) zoo entries read their data: the demo's synthetic world.
+CPU_ROOT = "data/demo"
+
+#: The short CPU schedule of every ``_tiny`` zoo entry: 5 epochs of single samples at 2e-3, no EMA.
+CPU_TRAIN = TrainConfig(epochs=5, batch_size=1, lr=2e-3, warmup_steps=50, grad_clip=35.0, ema_decay=0.0, workers=1,
+                        val_every=0, log_every=10)  # fmt: skip
+
+
+def cpu_data(paper: DatasetConfig) -> DatasetConfig:
+    """A paper entry's data settings at CPU size: the demo world, 128 x 352 images without rotation, at most 4
+    previous sweeps."""
+    return dataclasses.replace(paper, root=CPU_ROOT, sweeps=min(paper.sweeps, 4),
+                               image_aug=ImageAugConfig(final_size=(128, 352), rotate_deg=(0.0, 0.0)))  # fmt: skip

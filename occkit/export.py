@@ -33,6 +33,10 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
+from occkit import zoo
+from occkit.config import to_dict
+from occkit.engine.checkpoint import check_compatible
+from occkit.engine.evaluate import load_trained
 from occkit.models.deployment import OUTPUT_NAME, DeployedNetwork, deploy
 from occkit.types import Batch
 
@@ -94,11 +98,6 @@ def load_model(name: str, checkpoint: str | Path | None = None,
         ValueError: unknown name, or a checkpoint holding another model.
         FileNotFoundError: a missing checkpoint.
     """
-    from occkit import zoo
-    from occkit.config import to_dict
-    from occkit.engine.checkpoint import check_compatible
-    from occkit.engine.evaluate import load_trained
-
     if name not in zoo.names():
         raise ValueError(f"unknown model {name!r}; the zoo has: {', '.join(zoo.names())}")
     architecture, config = zoo.model_config(name)

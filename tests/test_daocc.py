@@ -36,7 +36,7 @@ def test_shapes_at_every_stage(synthetic_batch):
     assert model.lidar_encoder.out_channels == 16 * 5
     bev = model.bev_encoder(model.fuser([camera_bev, lidar_bev]))
     assert tuple(bev.shape) == (2, 64, 144, 144)
-    occ_bev = model.range_extension(bev, batch.lidar2ego, batch.bev_aug, batch.occ_aug)
+    occ_bev = model.range_extension(bev, model.plan(batch).range_grid)
     assert tuple(occ_bev.shape) == (2, 32, 200, 200)
     output = model(batch)
     assert tuple(output.occupancy.shape) == (2, 18, 200, 200, 16)

@@ -15,7 +15,7 @@ from occkit import zoo
 from occkit.cli import main
 from occkit.export import ExportError, check_parity, export_onnx, operator_counts
 from occkit.models.daocc import DAOcc
-from occkit.models.deployment import OUTPUT_NAME, DeployedDAOcc, DeployedNetwork, deploy
+from occkit.models.deployment import OUTPUT_NAME, DeployedNetwork, deploy
 from occkit.models.lidar_encoder import LidarEncoder, LidarEncoderConfig
 from occkit.models.sparse_rules import (
     ConvSpec,
@@ -180,9 +180,10 @@ def test_daocc_graph_takes_any_lidar_sweep_of_the_rig(exported):
 
     result = exported("daocc_tiny")
     net = result.net
-    assert isinstance(net, DeployedDAOcc) and bool((net.sample_weight == 0.5).any())  # overlapping cameras
-    for targets in net.sample_target:  # one camera samples each voxel once: its scatter cannot race either
-        targets = targets[targets != net.num_voxels]
+    sampling = net.plan().sampling
+    assert bool((sampling.weight == 0.5).any())  # overlapping cameras
+    for targets in sampling.target:  # one camera samples each voxel once: its scatter cannot race either
+        targets = targets[targets != sampling.num_voxels]
         assert targets.unique().numel() == targets.numel()
     assert net.input_names[:2] == ["images", "voxel_features"] and net.input_names[-1] == "coords_spconv_down2"
     options = ort.SessionOptions()
@@ -264,7 +265,7 @@ def test_cli_exports_a_checkpoint_on_a_generated_world(tmp_path, capsys):
     assert report["inputs"][0]["name"] == "images" and report["inputs"][0]["shape"] == [1, 6, 3, 128, 352]
     assert report["outputs"][0]["name"] == OUTPUT_NAME and report["parity"]["passed"]
     assert report["parity"]["argmax_agreement"] >= 0.999 and report["parity"]["max_abs_diff"] <= 1e-3
-    assert set(report["precomputed"]) == {"ranks_depth", "ranks_feat", "ranks_bev"}
+    assert set(report["precomputed"]) == {"plan_ranks_depth", "plan_ranks_feat", "plan_ranks_bev"}
     assert report["latency_ms"]["onnxruntime"] > 0 and "Conv" in report["op_types"]
 
 

@@ -44,10 +44,10 @@ def pixel_field(channels_u_v: bool, height: int, width: int, stride: int) -> tor
     return torch.stack([uu, vv]) if channels_u_v else torch.stack([vv, uu])
 
 
-def make_view(mode: str = "average", fixed: bool = False) -> ProjectionViewTransform:
+def make_view(mode: str = "average") -> ProjectionViewTransform:
     cfg = ProjectionConfig(
         point_cloud_range=(-16.0, -16.0, -2.0, 16.0, 16.0, 2.0), grid_size=(16, 16, 2), in_channels=2,
-        out_channels=2, mode=mode, fixed_calibration=fixed,
+        out_channels=2, mode=mode,
     )  # fmt: skip
     return ProjectionViewTransform(cfg)
 
@@ -153,18 +153,6 @@ def test_first_mode_takes_the_first_camera_only():
     assert torch.allclose(values[counts == 2], torch.tensor(1.0))
 
 
-def test_fixed_calibration_reuses_the_plan_only_at_inference():
-    view = make_view(fixed=True).eval()
-    geometry = batch_geometry(1, False, False)
-    first = view.plan(**geometry, image_size=IMAGE_SIZE)
-    geometry["bev_aug"] = torch.diag(torch.tensor([-1.0, 1.0, 1.0, 1.0]))[None]
-    assert view.plan(**geometry, image_size=IMAGE_SIZE) is first
-    view.reset_plan()
-    assert view.plan(**geometry, image_size=IMAGE_SIZE) is not first
-    view.train()
-    assert view.plan(**geometry, image_size=IMAGE_SIZE) is not view.plan(**geometry, image_size=IMAGE_SIZE)
-
-
 def test_view_transform_backpropagates_into_the_image_features():
     view = make_view()
     features = torch.randn(1, 2, 2, IMAGE_SIZE[0] // STRIDE, IMAGE_SIZE[1] // STRIDE, requires_grad=True)
@@ -184,7 +172,7 @@ def test_range_extension_samples_the_lidar_bev_cell_under_each_occupancy_column(
     bev = torch.stack([xx, yy])[None]
     occ_aug = torch.diag(torch.tensor([-1.0 if flip[0] else 1.0, -1.0 if flip[1] else 1.0, 1.0, 1.0]))
     bev_aug = lidar_frame_aug(occ_aug, lidar2ego()).float()
-    out = bvre(bev, lidar2ego()[None], bev_aug[None], occ_aug[None])  # (1, 2, 40, 40)
+    out = bvre(bev, bvre.sampling_grid(lidar2ego()[None], bev_aug[None], occ_aug[None]))  # (1, 2, 40, 40)
     assert out.shape == (1, 2, 40, 40)
     # Occupancy column centres (augmented ego frame) -> un-augment -> LiDAR -> augmented LiDAR.
     xs, ys = occ_grid.axis_centers(0), occ_grid.axis_centers(1)
@@ -200,9 +188,9 @@ def test_range_extension_zero_outside_the_bev_and_identity_in_the_lidar_frame():
     bvre = RangeExtension(cfg, occ_grid)
     ones = torch.ones(1, 1, 180, 180)
     eye = torch.eye(4)[None]
-    out = bvre(ones, lidar2ego()[None], eye, eye)
+    out = bvre(ones, bvre.sampling_grid(lidar2ego()[None], eye, eye))
     assert out.shape == (1, 1, 200, 200)
     torch.testing.assert_close(out, torch.ones_like(out))  # +-50 lies inside +-54: no zero padding reaches it
     narrow = RangeExtension(RangeExtensionConfig((-25.0, -25.0, 25.0, 25.0), 1, 1, "lidar"), occ_grid)
-    far = narrow(torch.ones(1, 1, 50, 50), lidar2ego()[None], eye, eye)
+    far = narrow(torch.ones(1, 1, 50, 50), narrow.sampling_grid(lidar2ego()[None], eye, eye))
     assert far[0, 0, 0, 0] == 0 and far[0, 0, 100, 100] == 1

@@ -286,7 +286,7 @@ def _val_gts(root: Path) -> dict[str, Path]:
 
 
 def test_cli_renders_ground_truth_predictions_and_page(data, tmp_path, capsys):
-    from occkit.engine.evaluate import write_prediction
+    from occkit.metrics.evaluate import write_prediction
 
     predictions = tmp_path / "pred"
     predictions.mkdir()

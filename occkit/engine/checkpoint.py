@@ -20,6 +20,11 @@ from typing import Any
 import numpy as np
 import torch
 
+from occkit.config import to_dict
+from occkit.data.dataset import DatasetConfig
+from occkit.experiment import TrainConfig
+from occkit.zoo import config_class
+
 __all__ = [
     "FORMAT",
     "atomic_save",
@@ -200,11 +205,6 @@ def check_resumable(payload: dict[str, Any], experiment: dict, path: str | Path,
 
 def _defaults(architecture: str) -> dict:
     """The experiment of ``architecture`` with every option at its default (sections model, data, train)."""
-    from occkit.config import to_dict
-    from occkit.data.dataset import DatasetConfig
-    from occkit.experiment import TrainConfig
-    from occkit.zoo import config_class
-
     return {"architecture": architecture, "model": to_dict(config_class(architecture)()),
             "data": to_dict(DatasetConfig()), "train": to_dict(TrainConfig())}  # fmt: skip
 

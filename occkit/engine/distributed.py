@@ -11,11 +11,12 @@ import os
 from collections.abc import Iterator
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 import torch.distributed as dist
 
 __all__ = ["Context", "setup", "teardown", "EpochSampler", "barrier", "broadcast_object", "broadcast_tensors",
-           "all_reduce_mean"]
+           "all_reduce_mean", "all_reduce_sum"]
 
 
 @dataclass(frozen=True)
@@ -92,6 +93,16 @@ def broadcast_tensors(tensors: list[torch.Tensor], src: int = 0) -> None:
         for tensor in group:
             tensor.detach().copy_(flat[offset : offset + tensor.numel()].view_as(tensor))
             offset += tensor.numel()
+
+
+def all_reduce_sum(array: np.ndarray) -> np.ndarray:
+    """Integer counts ``array`` summed over the ranks (itself outside a process group)."""
+    if not (torch.distributed.is_available() and torch.distributed.is_initialized()):
+        return array
+    device = "cuda" if torch.distributed.get_backend() == "nccl" else "cpu"
+    counts = torch.from_numpy(np.ascontiguousarray(array, dtype=np.int64)).to(device)
+    torch.distributed.all_reduce(counts)
+    return counts.cpu().numpy()
 
 
 def all_reduce_mean(values: dict[str, float], device: torch.device) -> dict[str, float]:

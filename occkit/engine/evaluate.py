@@ -1,13 +1,12 @@
-"""Evaluation and prediction with a trained model: Occ3D mIoU / IoU (camera mask), RayIoU, ``<token>.npz`` files.
+"""Evaluation of a trained model: Occ3D mIoU / IoU (camera mask) and RayIoU over a dataset split.
 
-Both run over a dataset split in order, sharded over ranks under torchrun; confusion matrices and RayIoU counts are
+It runs over the split in order, sharded over ranks under torchrun; confusion matrices and RayIoU counts are
 summed over ranks, so any number of processes gives the same scores.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import io
 import logging
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -17,13 +16,15 @@ import numpy as np
 import torch
 from torch import nn
 
+from occkit import zoo
 from occkit.data.collate import collate
 from occkit.data.dataset import OccupancyDataset
-from occkit.data.names import path_under, safe_name
 from occkit.engine import distributed
 from occkit.engine.checkpoint import check_compatible, load_checkpoint
 from occkit.experiment import Experiment
 from occkit.metrics.confusion import OccupancyMetric
+from occkit.metrics.evaluate import write_prediction
+from occkit.metrics.origins import PoseRecord, ray_origins
 from occkit.metrics.rayiou import RAYIOU_THRESHOLDS, rayiou, rayiou_from_counts
 from occkit.zoo import experiment_from_dict
 
@@ -31,8 +32,6 @@ __all__ = [
     "evaluate_model",
     "load_trained",
     "evaluation_dataset",
-    "write_prediction",
-    "predict_to_folder",
     "split_loader",
     "dataset_ray_origins",
 ]
@@ -49,60 +48,9 @@ def split_loader(dataset: OccupancyDataset, batch_size: int, workers: int, conte
                                        collate_fn=collate, generator=torch.Generator())  # fmt: skip
 
 
-def write_prediction(folder: Path, token: str, semantics: np.ndarray) -> Path:
-    """``folder/<token>.npz``, one Occ3D-format prediction file (``semantics``: uint8 ``(200, 200, 16)``), written
-    atomically. The token must be a safe name (:func:`~occkit.data.names.safe_name`), so the file stays in
-    ``folder`` whatever the tables say."""
-    path = path_under(folder, safe_name(token, f"sample token (writing into {folder})") + ".npz", str(folder))
-    buffer = io.BytesIO()
-    np.savez_compressed(buffer, semantics=semantics.astype(np.uint8))
-    temporary = path.with_name(f".{path.name}.tmp")
-    temporary.write_bytes(buffer.getvalue())
-    temporary.replace(path)
-    return path
-
-
-@torch.no_grad()
-def predict_to_folder(model: nn.Module, dataset: OccupancyDataset, out: Path, batch_size: int = 1, workers: int = 0,
-                      context: distributed.Context | None = None,
-                      progress: Callable[[int], None] | None = None) -> dict[str, int]:  # fmt: skip
-    """Write ``out/<token>.npz`` predictions of every frame of ``dataset`` (this rank's share under torchrun).
-
-    Returns:
-        ``written`` and ``skipped`` (frames that failed to load under ``on_error="skip"``), summed over ranks.
-    """
-    device = next(model.parameters()).device
-    was_training = model.training
-    model.eval()
-    loader = split_loader(dataset, batch_size, workers, context)
-    share, written = len(loader.sampler), 0
-    for index, batch in enumerate(loader):
-        if len(batch) > 0:  # else every frame of the batch failed to load (on_error="skip")
-            semantics = model.predict(batch.to(device)).semantics.cpu().numpy()
-            for token, grid in zip(batch.tokens, semantics, strict=True):
-                write_prediction(out, token, grid)
-            written += len(batch)
-        if progress is not None:
-            progress(min(batch_size, share - index * batch_size))
-    model.train(was_training)
-    written, skipped = (int(n) for n in _all_reduce(np.array([written, share - written])))
-    return {"written": written, "skipped": skipped}
-
-
 def dataset_ray_origins(dataset: OccupancyDataset) -> dict[str, np.ndarray]:
     """RayIoU origins (ego positions along each scene) of every key frame of the dataset."""
-    from occkit.metrics.origins import PoseRecord, ray_origins
-
     return ray_origins([PoseRecord(r.token, r.scene, r.lidar2ego, r.ego2global) for r in dataset.records])
-
-
-def _all_reduce(array: np.ndarray) -> np.ndarray:
-    if not (torch.distributed.is_available() and torch.distributed.is_initialized()):
-        return array
-    device = "cuda" if torch.distributed.get_backend() == "nccl" else "cpu"
-    counts = torch.from_numpy(np.ascontiguousarray(array, dtype=np.int64)).to(device)
-    torch.distributed.all_reduce(counts)
-    return counts.cpu().numpy()
 
 
 @torch.no_grad()
@@ -160,14 +108,14 @@ def evaluate_model(
         if progress is not None:
             progress(min(batch_size, share - index * batch_size))
     model.train(was_training)
-    metric.confusion = _all_reduce(metric.confusion)
-    frames, skipped = (int(n) for n in _all_reduce(np.array([frames, share - frames])))
+    metric.confusion = distributed.all_reduce_sum(metric.confusion)
+    frames, skipped = (int(n) for n in distributed.all_reduce_sum(np.array([frames, share - frames])))
     if skipped:
         log.warning("%d of %d frames failed to load and were skipped (on_error=skip): not scored", skipped,
                     frames + skipped)  # fmt: skip
     result = {**metric.compute(), "label_space": space.name, "mask": mask, "frames": frames, "skipped": skipped}
     if ray_origins is not None:
-        result.update(_rayiou_summary(_all_reduce(ray_counts)))
+        result.update(_rayiou_summary(distributed.all_reduce_sum(ray_counts)))
     return result
 
 
@@ -197,8 +145,6 @@ def load_trained(
             its model must be the checkpoint's (a ``ValueError`` names the first difference).
         overrides: ``section.key=value`` changes applied to the saved experiment (when ``experiment`` is None).
     """
-    from occkit import zoo
-
     payload = load_checkpoint(path, map_location=device)
     if experiment is None:
         try:

@@ -25,6 +25,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from occkit import zoo
 from occkit.data.collate import collate
 from occkit.data.dataset import OccupancyDataset
 from occkit.engine import distributed
@@ -107,8 +108,6 @@ class _Trainer:
     """State and steps of one run; :func:`train` drives it."""
 
     def __init__(self, experiment: Experiment, out: Path, context: distributed.Context) -> None:
-        from occkit import zoo
-
         self.experiment, self.out, self.context = experiment, out, context
         check_label_space(experiment.model, experiment.data.label_space)  # the model predicts what the data holds
         cfg = experiment.train

@@ -13,6 +13,7 @@ and SparseOcc's ``main_rayiou`` because both metrics are sums of per-frame count
 
 from __future__ import annotations
 
+import io
 import json
 import math
 import zipfile
@@ -23,11 +24,13 @@ from pathlib import Path
 import numpy as np
 
 from occkit.data.labels import label_file, read_labels
+from occkit.data.names import path_under, safe_name
 from occkit.label_space import OCC3D_SPACE, LabelSpace, label_space
 from occkit.metrics.confusion import OccupancyMetric
 from occkit.metrics.rayiou import RAYIOU_THRESHOLDS, rayiou, rayiou_from_counts
 
 __all__ = [
+    "write_prediction",
     "PRED_KEYS",
     "find_gt_labels",
     "read_prediction",
@@ -107,6 +110,19 @@ def find_gt_labels(gt_root: str | Path, space: LabelSpace | str = OCC3D_SPACE,
     if not found:
         raise ValueError(f"{gt_root} holds no <scene>/<token>/labels.npz (is it the Occ3D gts/ folder?)")
     return dict(sorted(found.items()))
+
+
+def write_prediction(folder: Path, token: str, semantics: np.ndarray) -> Path:
+    """``folder/<token>.npz``, one Occ3D-format prediction file (``semantics``: uint8 ``(200, 200, 16)``), written
+    atomically. The token must be a safe name (:func:`~occkit.data.names.safe_name`), so the file stays in
+    ``folder`` whatever the tables say."""
+    path = path_under(folder, safe_name(token, f"sample token (writing into {folder})") + ".npz", str(folder))
+    buffer = io.BytesIO()
+    np.savez_compressed(buffer, semantics=semantics.astype(np.uint8))
+    temporary = path.with_name(f".{path.name}.tmp")
+    temporary.write_bytes(buffer.getvalue())
+    temporary.replace(path)
+    return path
 
 
 def read_prediction(path: str | Path, space: LabelSpace | str = OCC3D_SPACE) -> np.ndarray:

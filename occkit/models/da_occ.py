@@ -21,19 +21,25 @@ scene-class affinity (MonoScene), the paper's weights.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass, field
+from typing import ClassVar
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
+from occkit.data.dataset import DatasetConfig
+from occkit.experiment import CPU_TRAIN, Experiment, TrainConfig, cpu_data
 from occkit.geometry.grid import OCC3D_GRID, VoxelGrid
+from occkit.label_space import OCC3D_SPACE
 from occkit.losses import (
     depth_bce,
     height_bce,
     scene_class_affinity_geometric,
     scene_class_affinity_semantic,
 )
+from occkit.models.base import FIXED_CALIBRATION_RETIRED, Architecture, OccupancyModel
 from occkit.models.bev_encoder import BevEncoder, BevEncoderConfig
 from occkit.models.dac import DACBlock
 from occkit.models.heads.depth import DepthNet, DepthNetConfig, camera_parameters
@@ -48,9 +54,11 @@ from occkit.models.view_transform.lss import (
     make_pooling_plan,
     voxel_pool,
 )
+from occkit.nuscenes import CAMERAS
 from occkit.types import Batch, ModelOutput, OccPrediction
 
-__all__ = ["DAOccLossWeights", "DirectionAwareOccConfig", "DirectionAwareOcc"]
+__all__ = ["DAOccLossWeights", "DirectionAwareOccConfig", "DirectionAwarePlan", "DirectionAwareOcc", "ARCHITECTURE",
+           "da_occ", "da_occ_tiny"]
 
 
 @dataclass(frozen=True)
@@ -72,6 +80,9 @@ class DAOccLossWeights:
 @dataclass(frozen=True)
 class DirectionAwareOccConfig:
     """DA-Occ, single frame, the paper's 16 x 32 x 32 height grid."""
+
+    #: Keys of older versions, skipped on load (see :func:`occkit.config.from_dict`).
+    RETIRED_KEYS: ClassVar[dict[str, str]] = {"fixed_calibration": FIXED_CALIBRATION_RETIRED}
 
     image: ImageEncoderConfig = field(
         default_factory=lambda: ImageEncoderConfig(out_stages=(3, 4), norm_eval=False, neck="fpn")
@@ -107,8 +118,11 @@ class DirectionAwareOccConfig:
     """Channel-to-height head."""
     loss_weights: DAOccLossWeights = field(default_factory=DAOccLossWeights)
     """Weights of the loss terms."""
-    fixed_calibration: bool = False
-    """Reuse the first pooling plans at inference (one rig, no augmentation)."""
+
+    @property
+    def sensors(self) -> tuple[str, ...]:
+        """The sensors the model reads at inference (LiDAR, where the data loads it, only supervises)."""
+        return ("cameras",)
 
     def __post_init__(self) -> None:
         height_bins = round((self.height_range[1] - self.height_range[0]) / self.height_range[2])
@@ -128,8 +142,25 @@ class DirectionAwareOccConfig:
                 raise ValueError(f"{key} = {value} must equal {source} = {wanted}")
 
 
-class DirectionAwareOcc(nn.Module):
-    """``forward(batch) -> ModelOutput`` (occupancy, depth, height); ``loss(output, batch)``; ``predict(batch)``."""
+@dataclass
+class DirectionAwarePlan:
+    """DA-Occ's calibration-only tensors."""
+
+    camera_params: Tensor
+    """``(B, N, 27)`` camera parameters of the camera-aware depth and height nets."""
+    z_bins: Tensor
+    """``(B, N, D, h, w)`` int64 height bin of every frustum point."""
+    bev: PoolingPlan
+    """Depth-score pooling onto the ``X x Y x 1`` BEV."""
+    height: PoolingPlan
+    """Height-score pooling onto the ``X' x Y' x Z`` height volume."""
+
+
+class DirectionAwareOcc(OccupancyModel):
+    """``forward(batch) -> ModelOutput`` (occupancy, depth, height); ``loss(output, batch)``; ``predict(batch)``.
+
+    Plan: :class:`DirectionAwarePlan`. Inputs: ``images``.
+    """
 
     def __init__(self, cfg: DirectionAwareOccConfig) -> None:
         super().__init__()
@@ -148,46 +179,39 @@ class DirectionAwareOcc(nn.Module):
         self.height_reduce = nn.Conv2d(context * cfg.height_grid_size[2], channels, 1)
         self.fuse = nn.Conv2d(2 * channels, channels, 1)
         self.occupancy_head = OccupancyHead(cfg.occupancy)
-        self._cached_plans: tuple[Tensor, PoolingPlan, PoolingPlan] | None = None
 
-    def _geometry(self, batch: Batch) -> tuple[Tensor, PoolingPlan, PoolingPlan]:
-        """Height-bin index of every frustum point ``(B, N, D, h, w)`` and the two pooling plans."""
-        if self._cached_plans is not None and not self.training:
-            return self._cached_plans
-        points_uvd = frustum(tuple(batch.images.shape[-2:]), self.cfg.feature_stride, self.cfg.depth_range,
-                             device=batch.images.device)
+    def plan(self, batch: Batch) -> DirectionAwarePlan:
+        images = _images(batch)
+        points_uvd = frustum(tuple(images.shape[-2:]), self.cfg.feature_stride, self.cfg.depth_range,
+                             device=images.device)
         points = lift_geometry(points_uvd, batch.intrinsics.float(), batch.cam2ego.float(), batch.img_aug.float(),
                                batch.occ_aug.float())  # (B, N, D, h, w, 3)
         z_bins = self.height_grid.world_to_index(points)[0][..., 2].clamp(0, self.cfg.height_grid_size[2] - 1)
-        plans = (z_bins, make_pooling_plan(points, self.bev_grid, batch.camera_mask),
-                 make_pooling_plan(points, self.height_grid, batch.camera_mask))  # fmt: skip
-        if self.cfg.fixed_calibration and not self.training:
-            self._cached_plans = plans
-        return plans
+        return DirectionAwarePlan(
+            camera_params=camera_parameters(batch.intrinsics, batch.img_aug, batch.occ_aug, batch.cam2ego),
+            z_bins=z_bins,
+            bev=make_pooling_plan(points, self.bev_grid, batch.camera_mask),
+            height=make_pooling_plan(points, self.height_grid, batch.camera_mask),
+        )
 
-    def reset_plan(self) -> None:
-        """Forget cached pooling plans (after a calibration change)."""
-        self._cached_plans = None
+    def inputs(self, batch: Batch) -> dict[str, Tensor]:
+        return {"images": _images(batch)}
 
-    def forward(self, batch: Batch) -> ModelOutput:
-        if batch.images is None:
-            raise ValueError("DA-Occ needs camera images but the batch has none")
-        features = self.image_encoder(batch.images)  # (B, N, C, h, w)
+    def network(self, inputs: Mapping[str, Tensor], plan: DirectionAwarePlan) -> ModelOutput:
+        features = self.image_encoder(inputs["images"])  # (B, N, C, h, w)
         batch_size, cameras = features.shape[:2]
         flat = features.flatten(0, 1)
-        camera_params = camera_parameters(batch.intrinsics, batch.img_aug, batch.occ_aug, batch.cam2ego)
-        depth_logits, context = self.depth_net(flat, camera_params)
-        height_logits, _ = self.height_net(flat, camera_params)
+        depth_logits, context = self.depth_net(flat, plan.camera_params)
+        height_logits, _ = self.height_net(flat, plan.camera_params)
         depth = depth_logits.softmax(dim=1).unflatten(0, (batch_size, cameras))  # (B, N, D, h, w)
         height = height_logits.softmax(dim=1).unflatten(0, (batch_size, cameras))  # (B, N, Z, h, w)
         context = context.unflatten(0, (batch_size, cameras))  # (B, N, C, h, w)
-        z_bins, bev_plan, height_plan = self._geometry(batch)
 
-        bev = fold_height(voxel_pool(depth, context, bev_plan))  # F_bev (B, C, X, Y)
+        bev = fold_height(voxel_pool(depth, context, plan.bev))  # F_bev (B, C, X, Y)
         bev = self.bev_encoder(bev)
         bev = self.bev_horizontal(bev) + self.bev_vertical(bev)  # F_BEV'
 
-        volume = voxel_pool(gather_point_weights(height, z_bins), context, height_plan)  # F_3D (B, C, Z, X, Y)
+        volume = voxel_pool(gather_point_weights(height, plan.z_bins), context, plan.height)  # F_3D (B, C, Z, X, Y)
         c, z, x, y = volume.shape[1:]
         sliced = self.height_vertical(volume.reshape(batch_size, c, z, x * y))  # F_height (B, C, Z, X*Y), DAC on Z
         folded = sliced.reshape(batch_size, c, z, x, y).transpose(1, 2).reshape(batch_size, z * c, x, y)
@@ -223,3 +247,58 @@ class DirectionAwareOcc(nn.Module):
     @torch.no_grad()
     def predict(self, batch: Batch) -> OccPrediction:
         return occupancy_prediction(self.forward(batch).occupancy)
+
+
+def _images(batch: Batch) -> Tensor:
+    if batch.images is None:
+        raise ValueError("DA-Occ needs camera images but the batch has none")
+    return batch.images
+
+
+# ------------------------------------------------------------------------------------------------- zoo presets
+#: DA-Occ's schedule: AdamW 1e-4, weight decay 0.05, gradient clip 5.
+TRAIN = TrainConfig(epochs=24, batch_size=4, lr=1e-4, weight_decay=0.05, grad_clip=5.0)
+
+#: The paper's inputs: six cameras, and the key-frame LiDAR sweep for the depth and height targets (training only).
+DATA = DatasetConfig(cameras=CAMERAS, sweeps=0, boxes=False, augment=True, depth_downsample=16,
+                     label_space=OCC3D_SPACE.name)  # fmt: skip
+
+
+def da_occ() -> Experiment:
+    """DA-Occ, single frame: ResNet-50 at 256 x 704, camera-aware DepthNet and HeightNet (two vertical DACs),
+    depth-score BEV plus a 16 x 32 x 32 height-score volume, DAC decoders; 34.38 mIoU in the paper."""
+    return Experiment("da_occ", DirectionAwareOccConfig(), DATA, TRAIN)
+
+
+def da_occ_tiny() -> Experiment:
+    """DA-Occ's architecture scaled down for CPUs: ResNet-18 (one block per stage) C4/C5 at 128 x 352, 22 depth
+    bins, 32-channel depth and height nets without ASPP, narrow BEV encoder; Occ3D output grid unchanged."""
+    net = {"in_channels": 64, "mid_channels": 32, "residual_blocks": 2, "feature_height": 8, "aspp": False}
+    model = DirectionAwareOccConfig(
+        image=ImageEncoderConfig(depth=18, blocks=(1, 1, 1, 1), out_stages=(3, 4), norm_eval=False, neck="fpn",
+                                 neck_channels=64),
+        depth_range=(1.0, 45.0, 2.0),
+        depth_net=DepthNetConfig(bins=22, context_channels=16, **net),
+        height_net=DepthNetConfig(bins=16, context_channels=0, dac_blocks=2, **net),
+        bev=BevEncoderConfig(in_channels=16, strides=(2, 2, 2), channels=(32, 64, 128), blocks=(1, 1, 1),
+                             neck_channels=32, neck_extra_upsample=2),
+        fusion_channels=32,
+        occupancy=OccupancyHeadConfig(in_channels=32, hidden_channels=32, class_balance=True),
+    )  # fmt: skip
+    return Experiment("da_occ", model, cpu_data(DATA), CPU_TRAIN)
+
+
+ARCHITECTURE = Architecture(
+    name="da_occ",
+    config=DirectionAwareOccConfig,
+    model=DirectionAwareOcc,
+    presets={f.__name__: f for f in (da_occ, da_occ_tiny)},
+    stages={
+        "image_encoder": ("image_encoder",),
+        "view_transform": ("depth_net", "height_net"),
+        # DA-Occ's decoders: the DACs on F_bev and on the height volume, its reduction and the fusing 1x1 conv.
+        "fusion_bev_encoder": ("bev_encoder", "bev_horizontal", "bev_vertical", "height_vertical", "height_reduce",
+                               "fuse"),
+        "heads": ("occupancy_head",),
+    },
+)  # fmt: skip

@@ -15,22 +15,31 @@ branch (``image=None``) it is the LiDAR-only variant; without ``lidar`` a camera
 
 from __future__ import annotations
 
+import dataclasses
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 
 import torch
-from torch import Tensor, nn
+from torch import Tensor
 
+from occkit.data.dataset import DatasetConfig
+from occkit.experiment import CPU_TRAIN, Experiment, TrainConfig, cpu_data
 from occkit.geometry.grid import OCC3D_GRID, VoxelGrid
+from occkit.label_space import OCC3D_SPACE, SURROUNDOCC_SPACE, LabelSpace
+from occkit.models.base import Architecture, CameraInputs, Deployment, OccupancyModel
 from occkit.models.bev_encoder import BevEncoder, BevEncoderConfig, ConvFuser
 from occkit.models.heads.center import CenterHead, CenterHeadConfig
 from occkit.models.heads.occupancy import OccupancyHead, OccupancyHeadConfig, occupancy_prediction
 from occkit.models.image_encoder import ImageEncoder, ImageEncoderConfig
 from occkit.models.lidar_encoder import LidarEncoder, LidarEncoderConfig
 from occkit.models.range_extension import RangeExtension, RangeExtensionConfig
-from occkit.models.view_transform.projection import ProjectionConfig, ProjectionViewTransform
+from occkit.models.sparse_rules import RulebookSparseEncoder
+from occkit.models.view_transform.projection import ProjectionConfig, ProjectionViewTransform, SamplingPlan
+from occkit.nuscenes import CAMERAS
 from occkit.types import Batch, ModelOutput, OccPrediction
 
-__all__ = ["DAOccConfig", "DAOcc"]
+__all__ = ["DAOccConfig", "FusionPlan", "DAOcc", "FusionInputs", "ARCHITECTURE", "daocc", "daocc_lidar",
+           "daocc_surroundocc", "daocc_surroundocc_tiny", "daocc_tiny"]
 
 
 @dataclass(frozen=True)
@@ -61,6 +70,11 @@ class DAOccConfig:
     detection_loss_weight: float = 0.01
     """Weight of the detection losses in the total loss."""
 
+    @property
+    def sensors(self) -> tuple[str, ...]:
+        """The sensors the model reads at inference."""
+        return tuple(name for name, branch in (("cameras", self.image), ("LiDAR", self.lidar)) if branch is not None)
+
     def __post_init__(self) -> None:
         if self.image is None and self.lidar is None:
             raise ValueError("DAOcc needs a camera branch (image), a LiDAR branch (lidar), or both")
@@ -85,8 +99,23 @@ class DAOccConfig:
                              " voxels along z")
 
 
-class DAOcc(nn.Module):
-    """``forward(batch) -> ModelOutput``; ``loss(output, batch)``; ``predict(batch) -> OccPrediction``."""
+@dataclass
+class FusionPlan:
+    """DAOcc's calibration-only tensors."""
+
+    sampling: SamplingPlan | None
+    """Where each camera samples its features (None without a camera branch)."""
+    range_grid: Tensor
+    """``(B, X, Y, 2)`` BVRE ``grid_sample`` coordinates of the occupancy columns in the BEV."""
+
+
+class DAOcc(OccupancyModel):
+    """``forward(batch) -> ModelOutput``; ``loss(output, batch)``; ``predict(batch) -> OccPrediction``.
+
+    Plan: :class:`FusionPlan`. Inputs: ``images (B, N, 3, H, W)`` with a camera branch; with a LiDAR branch either
+    ``points (B, P, C)`` and ``num_points (B,)`` (spconv runs the sparse encoder) or a ready ``lidar_bev`` (the
+    deployed network runs it from rulebooks, :class:`LidarRulebookInputs`).
+    """
 
     def __init__(self, cfg: DAOccConfig) -> None:
         super().__init__()
@@ -115,33 +144,57 @@ class DAOcc(nn.Module):
         """Drop the detection branch for deployment: its parameters leave the model and nothing of it runs."""
         self.detection_head = None
 
-    def encode(self, batch: Batch) -> Tensor:
-        """The fused and encoded BEV ``(B, bev.neck_channels, X_bev, Y_bev)`` in the augmented LiDAR frame."""
-        bevs = []
-        if self.image_encoder is not None:
-            if batch.images is None:
-                raise ValueError("this DAOcc has a camera branch but the batch has no images")
-            features = self.image_encoder(batch.images)  # (B, N, C, h, w)
-            plan = self.view_transform.plan(
+    def plan(self, batch: Batch) -> FusionPlan:
+        sampling = None
+        if self.view_transform is not None:
+            images = self._images(batch)
+            sampling = self.view_transform.plan(
                 batch.intrinsics, batch.cam2ego, batch.img_aug, batch.lidar2ego, batch.bev_aug,
-                image_size=tuple(batch.images.shape[-2:]), camera_mask=batch.camera_mask,
+                image_size=tuple(images.shape[-2:]), camera_mask=batch.camera_mask,
             )  # fmt: skip
-            bevs.append(self.view_transform(features, plan))
+        grid = self.range_extension.sampling_grid(batch.lidar2ego, batch.bev_aug, batch.occ_aug)
+        return FusionPlan(sampling=sampling, range_grid=grid)
+
+    def inputs(self, batch: Batch) -> dict[str, Tensor]:
+        inputs = {}
+        if self.image_encoder is not None:
+            inputs["images"] = self._images(batch)
         if self.lidar_encoder is not None:
             if batch.points is None:
                 raise ValueError("this DAOcc has a LiDAR branch but the batch has no points")
-            bevs.append(self.lidar_encoder(batch.points, batch.num_points))
+            inputs.update(points=batch.points, num_points=batch.num_points)
+        return inputs
+
+    def _images(self, batch: Batch) -> Tensor:
+        if batch.images is None:
+            raise ValueError("this DAOcc has a camera branch but the batch has no images")
+        return batch.images
+
+    def encode(self, inputs: Mapping[str, Tensor], plan: FusionPlan) -> Tensor:
+        """The fused and encoded BEV ``(B, bev.neck_channels, X_bev, Y_bev)`` in the augmented LiDAR frame."""
+        bevs = []
+        if self.image_encoder is not None:
+            bevs.append(self.view_transform(self.image_encoder(inputs["images"]), plan.sampling))
+        if self.lidar_encoder is not None:
+            lidar_bev = inputs.get("lidar_bev")
+            bevs.append(self.lidar_encoder(inputs["points"], inputs["num_points"]) if lidar_bev is None else lidar_bev)
         return self.bev_encoder(self.fuser(bevs))
 
-    def forward(self, batch: Batch, detect: bool | None = None) -> ModelOutput:
-        """Run the model; the detection head runs in training, or when ``detect`` is True."""
-        bev = self.encode(batch)
-        occ_bev = self.range_extension(bev, batch.lidar2ego, batch.bev_aug, batch.occ_aug)
-        output = ModelOutput(occupancy=self.occupancy_head(occ_bev))
+    def network(self, inputs: Mapping[str, Tensor], plan: FusionPlan, detect: bool | None = None) -> ModelOutput:
+        """The occupancy logits, and the detection head's outputs in training or when ``detect`` is True."""
+        bev = self.encode(inputs, plan)
+        output = ModelOutput(occupancy=self.occupancy_head(self.range_extension(bev, plan.range_grid)))
         run_detection = self.training if detect is None else detect
         if run_detection and self.detection_head is not None:
             output.detection = self.detection_head(bev)
         return output
+
+    def forward(self, batch: Batch, detect: bool | None = None) -> ModelOutput:
+        """Run the model; the detection head runs in training, or when ``detect`` is True."""
+        return self.network(self.inputs(batch), self.current_plan(batch), detect)
+
+    def deployment(self, batch: Batch) -> Deployment:
+        return FusionInputs(self, batch)
 
     def loss(self, output: ModelOutput, batch: Batch) -> dict[str, Tensor]:
         """Weighted loss terms; their sum is the training loss."""
@@ -166,3 +219,165 @@ class DAOcc(nn.Module):
                 output.detection
             )
         return prediction
+
+
+class FusionInputs(Deployment):
+    """Graph inputs of DAOcc's fixed-rig network (those of the branches the model has).
+
+    * ``images (B, N, 3, H, W)``;
+    * ``voxel_features (V, C)``: the mean point of every voxel (``LidarEncoder.voxelize``);
+    * ``rules_<key> (2, K', L_key)`` int64, one per sparse convolution key of the encoder (``subm1``, ``spconv1``,
+      ..., ``spconv_down2``): input rows and output rows of each kernel offset's pairs, see
+      :mod:`occkit.models.sparse_rules`;
+    * ``coords_<key> (N_key, 4)`` int64 ``(batch, x, y, z)``, the active sites after each strided convolution; the
+      network reads their count, and places the last ones in the dense LiDAR BEV.
+
+    Voxelization and rulebook building run outside the graph (:meth:`inputs`); inside it the sparse encoder runs
+    from the rulebooks (:class:`~occkit.models.sparse_rules.RulebookSparseEncoder`, the same weights as spconv's
+    layers) and hands :meth:`DAOcc.network` a ready ``lidar_bev``.
+    """
+
+    def __init__(self, model: DAOcc, batch: Batch) -> None:
+        super().__init__()
+        self.cameras = CameraInputs(batch) if model.image_encoder is not None else None
+        if self.cameras is not None:
+            self.declare("images", self.cameras.input_docs["images"])
+        self.batch_size = len(batch)
+        self.voxelize = None if model.lidar_encoder is None else model.lidar_encoder.voxelize
+        self.sparse_encoder = None
+        if model.lidar_encoder is not None:
+            self.sparse_encoder = RulebookSparseEncoder(model.lidar_encoder.encoder, self.batch_size)
+            channels = model.lidar_encoder.cfg.in_channels
+            self.declare("voxel_features", f"(V, {channels}) float32 mean point of each voxel", {0: "voxels"})
+            for spec in self.sparse_encoder.specs:
+                kind = "submanifold, centre offset left out" if spec.subm else f"stride {spec.stride}"
+                self.declare(f"rules_{spec.key}", f"(2, {len(spec.offsets)}, L) int64 rulebook of the {spec.key} "
+                             f"convolutions ({kind}): input rows [0] and output rows [1] per kernel offset",
+                             {2: f"pairs_{spec.key}"})  # fmt: skip
+            for spec in self.sparse_encoder.strided_specs:
+                self.declare(f"coords_{spec.key}", f"(N, 4) int64 (batch, x, y, z) active sites after {spec.key}, "
+                             f"{spec.out_shape}", {0: f"sites_{spec.key}"})  # fmt: skip
+
+    def inputs(self, batch: Batch) -> dict[str, Tensor]:
+        tensors = {} if self.cameras is None else self.cameras.inputs(batch)
+        if self.sparse_encoder is not None:
+            if batch.points is None or len(batch) != self.batch_size:
+                raise ValueError(f"the network was made for LiDAR batches of {self.batch_size} sample(s)")
+            features, coords, _ = self.voxelize(batch.points, batch.num_points)
+            # spconv's extra z cell is never occupied, so the voxel coordinates are valid encoder sites as they are.
+            pairs, out_coords = self.sparse_encoder.rulebook_tensors(coords)
+            tensors["voxel_features"] = features
+            tensors.update({f"rules_{s.key}": p for s, p in zip(self.sparse_encoder.specs, pairs, strict=True)})
+            tensors.update({f"coords_{s.key}": c for s, c in zip(self.sparse_encoder.strided_specs, out_coords,
+                                                                  strict=True)})  # fmt: skip
+        return tensors
+
+    def forward(self, inputs: Mapping[str, Tensor]) -> dict[str, Tensor]:
+        named = {} if self.cameras is None else {"images": inputs["images"]}
+        if self.sparse_encoder is not None:
+            pairs = [inputs[f"rules_{s.key}"] for s in self.sparse_encoder.specs]
+            coords = [inputs[f"coords_{s.key}"] for s in self.sparse_encoder.strided_specs]
+            named["lidar_bev"] = self.sparse_encoder(inputs["voxel_features"], pairs, coords)  # (B, C', X, Y)
+        return named
+
+
+# ------------------------------------------------------------------------------------------------- zoo presets
+#: DAOcc's schedule: AdamW 2e-4, gradient clip 35, fp16.
+TRAIN = TrainConfig(epochs=24, batch_size=4, lr=2e-4, grad_clip=35.0, precision="fp16")
+
+
+def _data(cameras: tuple[str, ...] = CAMERAS, space: LabelSpace = OCC3D_SPACE) -> DatasetConfig:
+    """The paper's inputs: 10 LiDAR sweeps (9 before the key frame) and the boxes of the detection head."""
+    return DatasetConfig(cameras=cameras, sweeps=9, boxes=True, augment=True, label_space=space.name)
+
+
+def daocc() -> Experiment:
+    """DAOcc, Occ3D-nuScenes paper setting: ResNet-50 at 256 x 704, 10 LiDAR sweeps, camera mask, 53.8 mIoU."""
+    return Experiment("daocc", DAOccConfig(), _data(), TRAIN)
+
+
+def daocc_surroundocc() -> Experiment:
+    """DAOcc on SurroundOcc: LiDAR-frame +-50 m grid at 0.5 m, 17 classes (0 = empty), drop-free CE, no mask."""
+    space = SURROUNDOCC_SPACE
+    model = dataclasses.replace(
+        DAOccConfig(),
+        occ_range=space.grid.point_cloud_range,
+        occ_voxel_size=space.grid.voxel_size,
+        range_extension=RangeExtensionConfig(label_frame=space.frame),
+        occupancy=OccupancyHeadConfig(num_classes=space.num_classes, free_index=space.free_index, use_mask=False),
+    )
+    return Experiment("daocc", model, _data(space=space), TRAIN)
+
+
+def daocc_lidar() -> Experiment:
+    """DAOcc without its camera branch: LiDAR only, asked for by the reference's users."""
+    return Experiment("daocc", dataclasses.replace(DAOccConfig(), image=None), _data(cameras=()), TRAIN)
+
+
+def daocc_tiny() -> Experiment:
+    """DAOcc's architecture scaled down for CPUs: ResNet-18 (one block per stage), +-43.2 m at 0.15 m voxels with a
+    stride-4 sparse encoder (a 144 x 144 BEV of 0.6 m cells, the paper's cell size), narrow channels, and a Lovasz
+    term beside the cross-entropy; the Occ3D output grid is unchanged."""
+    extent = 43.2
+    lidar_range = (-extent, -extent, -5.0, extent, extent, 3.0)
+    model = DAOccConfig(
+        image=ImageEncoderConfig(depth=18, blocks=(1, 1, 1, 1), neck_channels=64),
+        view=ProjectionConfig(point_cloud_range=lidar_range, grid_size=(144, 144, 4), in_channels=64, out_channels=16),
+        lidar=LidarEncoderConfig(
+            point_cloud_range=lidar_range,
+            voxel_size=(0.15, 0.15, 0.2),
+            max_voxels_train=60000,
+            max_voxels_test=80000,
+            base_channels=8,
+            encoder_channels=((8, 8, 16), (16, 16, 32), (32, 32)),
+            downsample_paddings=((1, 1, 1), (1, 1, 1)),
+            output_channels=16,
+        ),
+        fusion_channels=32,
+        bev=BevEncoderConfig(in_channels=32, blocks=(1, 1, 1), strides=(1, 2, 2), channels=(32, 64, 128),
+                             neck_channels=64),
+        range_extension=RangeExtensionConfig(bev_range=(-extent, -extent, extent, extent), in_channels=64,
+                                             out_channels=32),
+        occupancy=OccupancyHeadConfig(in_channels=32, hidden_channels=32, class_balance=True, lovasz_weight=1.0),
+        detection=CenterHeadConfig(
+            in_channels=64, share_conv_channels=16, head_conv_channels=8, point_cloud_range=lidar_range,
+            voxel_size=(0.15, 0.15), out_size_factor=4,
+        ),
+    )  # fmt: skip
+    return Experiment("daocc", model, cpu_data(_data()), CPU_TRAIN)
+
+
+def daocc_surroundocc_tiny() -> Experiment:
+    """daocc_tiny on SurroundOcc's labels: the LiDAR-frame +-50 m grid at 0.5 m with 17 classes (0 = empty), a
+    +-50.4 m BEV of 0.6 m cells (168 x 168) so that the grid lies inside it, drop-free CE and Lovasz, no mask."""
+    cfg, space = daocc_tiny().model, SURROUNDOCC_SPACE
+    extent = 50.4
+    lidar_range = (-extent, -extent, -5.0, extent, extent, 3.0)
+    model = dataclasses.replace(
+        cfg,
+        occ_range=space.grid.point_cloud_range,
+        occ_voxel_size=space.grid.voxel_size,
+        view=dataclasses.replace(cfg.view, point_cloud_range=lidar_range, grid_size=(168, 168, 4)),
+        lidar=dataclasses.replace(cfg.lidar, point_cloud_range=lidar_range),
+        range_extension=dataclasses.replace(cfg.range_extension, bev_range=(-extent, -extent, extent, extent),
+                                            label_frame=space.frame),
+        occupancy=OccupancyHeadConfig(in_channels=32, hidden_channels=32, num_classes=space.num_classes,
+                                      free_index=space.free_index, use_mask=False, lovasz_weight=1.0),
+        detection=dataclasses.replace(cfg.detection, point_cloud_range=lidar_range),
+    )  # fmt: skip
+    return Experiment("daocc", model, cpu_data(_data(space=space)), CPU_TRAIN)
+
+
+ARCHITECTURE = Architecture(
+    name="daocc",
+    config=DAOccConfig,
+    model=DAOcc,
+    presets={f.__name__: f for f in (daocc, daocc_lidar, daocc_surroundocc, daocc_surroundocc_tiny, daocc_tiny)},
+    stages={
+        "image_encoder": ("image_encoder",),
+        "view_transform": ("view_transform",),
+        "lidar_encoder": ("lidar_encoder",),
+        "fusion_bev_encoder": ("fuser", "bev_encoder"),
+        "heads": ("range_extension", "occupancy_head"),
+    },
+)

@@ -14,18 +14,25 @@ supervision. The BEV is ``(B, C, X, Y)`` in the augmented ego frame (BEVDet's ``
 
 from __future__ import annotations
 
+import dataclasses
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 
 import torch
-from torch import Tensor, nn
+from torch import Tensor
 
+from occkit.data.dataset import DatasetConfig
+from occkit.experiment import CPU_TRAIN, Experiment, TrainConfig, cpu_data
+from occkit.label_space import OCC3D_SPACE
+from occkit.models.base import Architecture, OccupancyModel
 from occkit.models.bev_encoder import BevEncoder, BevEncoderConfig
 from occkit.models.heads.occupancy import OccupancyHead, OccupancyHeadConfig, occupancy_prediction
 from occkit.models.image_encoder import ImageEncoder, ImageEncoderConfig
-from occkit.models.view_transform.lss import LSSConfig, LSSViewTransform
+from occkit.models.view_transform.lss import LSSConfig, LSSViewTransform, PoolingPlan
+from occkit.nuscenes import CAMERAS
 from occkit.types import Batch, ModelOutput, OccPrediction
 
-__all__ = ["FlashOccConfig", "FlashOcc"]
+__all__ = ["FlashOccConfig", "FlashOcc", "ARCHITECTURE", "flashocc_m0", "flashocc_m1", "flashocc_tiny"]
 
 
 @dataclass(frozen=True)
@@ -47,6 +54,11 @@ class FlashOccConfig:
     occupancy: OccupancyHeadConfig = field(default_factory=OccupancyHeadConfig)
     """Channel-to-height head and camera-masked CE."""
 
+    @property
+    def sensors(self) -> tuple[str, ...]:
+        """The sensors the model reads at inference (LiDAR, where the data loads it, only supervises)."""
+        return ("cameras",)
+
     def __post_init__(self) -> None:
         checks = {
             "lss.in_channels": (self.lss.in_channels, self.image.neck_channels, "image.neck_channels"),
@@ -59,8 +71,11 @@ class FlashOccConfig:
                 raise ValueError(f"{key} = {value} must equal {source} = {wanted}")
 
 
-class FlashOcc(nn.Module):
-    """``forward(batch) -> ModelOutput``; ``loss(output, batch)``; ``predict(batch) -> OccPrediction``."""
+class FlashOcc(OccupancyModel):
+    """``forward(batch) -> ModelOutput``; ``loss(output, batch)``; ``predict(batch) -> OccPrediction``.
+
+    Plan: the LSS :class:`~occkit.models.view_transform.lss.PoolingPlan`. Inputs: ``images``.
+    """
 
     def __init__(self, cfg: FlashOccConfig) -> None:
         super().__init__()
@@ -73,12 +88,16 @@ class FlashOcc(nn.Module):
         self.bev_encoder = BevEncoder(cfg.bev)
         self.occupancy_head = OccupancyHead(cfg.occupancy)
 
-    def forward(self, batch: Batch) -> ModelOutput:
-        if batch.images is None:
-            raise ValueError("FlashOcc needs camera images but the batch has none")
-        features = self.image_encoder(batch.images)  # (B, N, 256, h, w)
-        plan = self.view_transform.plan(batch.intrinsics, batch.cam2ego, batch.img_aug, batch.occ_aug,
-                                        image_size=tuple(batch.images.shape[-2:]), camera_mask=batch.camera_mask)
+    def plan(self, batch: Batch) -> PoolingPlan:
+        images = _images(batch)
+        return self.view_transform.plan(batch.intrinsics, batch.cam2ego, batch.img_aug, batch.occ_aug,
+                                        image_size=tuple(images.shape[-2:]), camera_mask=batch.camera_mask)
+
+    def inputs(self, batch: Batch) -> dict[str, Tensor]:
+        return {"images": _images(batch)}
+
+    def network(self, inputs: Mapping[str, Tensor], plan: PoolingPlan) -> ModelOutput:
+        features = self.image_encoder(inputs["images"])  # (B, N, 256, h, w)
         bev, depth = self.view_transform(features, plan)  # (B, 64, X, Y), (B, N, D, h, w)
         logits = self.occupancy_head(self.bev_encoder(bev))
         return ModelOutput(occupancy=logits, depth=depth)
@@ -92,3 +111,65 @@ class FlashOcc(nn.Module):
     @torch.no_grad()
     def predict(self, batch: Batch) -> OccPrediction:
         return occupancy_prediction(self.forward(batch).occupancy)
+
+
+def _images(batch: Batch) -> Tensor:
+    if batch.images is None:
+        raise ValueError("FlashOcc needs camera images but the batch has none")
+    return batch.images
+
+
+# ------------------------------------------------------------------------------------------------- zoo presets
+#: FlashOcc's schedule: AdamW 1e-4, gradient clip 5, 200 warm-up steps from 0.001 of the rate.
+TRAIN = TrainConfig(epochs=24, batch_size=4, lr=1e-4, grad_clip=5.0, warmup_steps=200, warmup_ratio=0.001)
+
+#: The paper's inputs: six cameras, no LiDAR.
+DATA = DatasetConfig(cameras=CAMERAS, sweeps=-1, boxes=False, augment=True, label_space=OCC3D_SPACE.name)
+
+
+def flashocc_m0() -> Experiment:
+    """FlashOcc M0: ResNet-50 C4/C5 + FPN at 256 x 704, 44 depth bins, 64 x 200 x 200 BEV, 128-channel C2H head;
+    31.95 mIoU, 39.94 M parameters."""
+    return Experiment("flashocc", FlashOccConfig(), DATA, TRAIN)
+
+
+def flashocc_m1() -> Experiment:
+    """FlashOcc M1: M0 with 88 depth bins (0.5 m) and a 256-channel BEV neck and head; 32.08 mIoU, 44.74 M
+    parameters."""
+    cfg = FlashOccConfig()
+    model = dataclasses.replace(
+        cfg,
+        lss=LSSConfig(depth_range=(1.0, 45.0, 0.5)),
+        bev=dataclasses.replace(cfg.bev, neck_channels=256),
+        occupancy=OccupancyHeadConfig(in_channels=256, hidden_channels=256),
+    )
+    return Experiment("flashocc", model, DATA, TRAIN)
+
+
+def flashocc_tiny() -> Experiment:
+    """FlashOcc's architecture scaled down for CPUs: ResNet-18 (one block per stage) C4/C5 at 128 x 352, 22 depth
+    bins, 16 context channels, narrow BEV encoder, and a Lovasz term beside the cross-entropy (as daocc_tiny); the
+    Occ3D output grid is unchanged."""
+    model = FlashOccConfig(
+        image=ImageEncoderConfig(depth=18, blocks=(1, 1, 1, 1), out_stages=(3, 4), norm_eval=False, neck="fpn",
+                                 neck_channels=64),
+        lss=LSSConfig(image_size=(128, 352), depth_range=(1.0, 45.0, 2.0), in_channels=64, context_channels=16),
+        bev=BevEncoderConfig(in_channels=16, strides=(2, 2, 2), channels=(32, 64, 128), blocks=(1, 1, 1),
+                             neck_channels=32, neck_extra_upsample=2),
+        occupancy=OccupancyHeadConfig(in_channels=32, hidden_channels=32, class_balance=True, lovasz_weight=1.0),
+    )  # fmt: skip
+    return Experiment("flashocc", model, cpu_data(DATA), CPU_TRAIN)
+
+
+ARCHITECTURE = Architecture(
+    name="flashocc",
+    config=FlashOccConfig,
+    model=FlashOcc,
+    presets={f.__name__: f for f in (flashocc_m0, flashocc_m1, flashocc_tiny)},
+    stages={
+        "image_encoder": ("image_encoder",),
+        "view_transform": ("view_transform",),
+        "fusion_bev_encoder": ("bev_encoder",),
+        "heads": ("occupancy_head",),
+    },
+)

@@ -4,8 +4,9 @@ Each step is optional, because whether it pays depends on the device (``occkit b
 keeps the ones that speed the model up; see ``docs/benchmarks.md``):
 
 ``fixed_calibration``
-    The view transforms compute their geometry once and reuse it: LSS's pooling ranks, the projection's sampling
-    grids, DA-Occ's two pooling plans. Valid for one rig without test-time augmentation, as the papers time them.
+    The model computes its plan once and reuses it (:mod:`occkit.models.base`): LSS's pooling ranks, the
+    projection's sampling grids, the BVRE grid, DA-Occ's two pooling plans and camera parameters. Valid for one rig
+    without test-time augmentation, as the papers time them.
 ``fold_bn``
     Every ``BatchNorm2d`` that directly consumes a ``Conv2d``'s output is folded into that convolution
     (``w' = w * g / sqrt(v + eps)``, ``b' = (b - m) * g / sqrt(v + eps) + beta``) and replaced by ``Identity``.
@@ -22,13 +23,15 @@ Always done: eval mode and the detection branch removed (it runs only in trainin
 
 from __future__ import annotations
 
-import dataclasses
 from collections import Counter
 from collections.abc import Sequence
 
 import torch
 from torch import nn
 from torch.nn.utils.fusion import fuse_conv_bn_eval
+
+from occkit.models.base import OccupancyModel
+from occkit.models.sparse import spconv
 
 __all__ = [
     "OPTIMIZATIONS",
@@ -81,21 +84,16 @@ def apply_optimization(model: nn.Module, name: str) -> None:
 
 # ------------------------------------------------------------------------------------------- fixed calibration
 def fix_calibration(model: nn.Module) -> list[str]:
-    """Turn on ``fixed_calibration`` in every submodule whose config has that flag; names of those modules.
+    """Let every occupancy model in ``model`` reuse its plan in eval mode; the names of those models.
 
-    The flag lives in the view transforms' configs (``LSSConfig``, ``ProjectionConfig``) and in DA-Occ's model
-    config; the modules read it from their own ``cfg``, which is replaced here (configs are frozen dataclasses).
-    Cached geometry is dropped, so the first forward afterwards computes the plan that is then reused.
+    The plan (:mod:`occkit.models.base`: pooling ranks, sampling grids, camera parameters) is then computed at the
+    first forward and reused while the batch and image sizes stay the same; the network code is unchanged.
     """
     changed = []
     for name, module in model.named_modules():
-        cfg = getattr(module, "cfg", None)
-        if not dataclasses.is_dataclass(cfg) or "fixed_calibration" not in {f.name for f in dataclasses.fields(cfg)}:
-            continue
-        module.cfg = dataclasses.replace(cfg, fixed_calibration=True)
-        if hasattr(module, "reset_plan"):
-            module.reset_plan()
-        changed.append(name or type(module).__name__)
+        if isinstance(module, OccupancyModel):
+            module.reuse_plan = True
+            changed.append(name or type(module).__name__)
     return changed
 
 
@@ -190,8 +188,6 @@ def to_channels_last(model: nn.Module) -> list[str]:
 
 
 def _is_sparse(module: nn.Module) -> bool:
-    from occkit.models.sparse import spconv
-
     return any(isinstance(m, spconv.SparseModule) for m in module.modules())
 
 

@@ -76,8 +76,8 @@ class RangeExtension(nn.Module):
         norm_y = (points[..., 1] - y_min) / (y_max - y_min) * 2 - 1
         return torch.stack([norm_y, norm_x], dim=-1)
 
-    def forward(self, bev: Tensor, lidar2ego: Tensor, bev_aug: Tensor, occ_aug: Tensor) -> Tensor:
+    def forward(self, bev: Tensor, grid: Tensor) -> Tensor:
+        """``bev (B, C_in, X_bev, Y_bev)`` sampled at ``grid`` (from :meth:`sampling_grid`) -> ``(B, C_out, X, Y)``."""
         if self.reduce is not None:
             bev = self.reduce(bev)
-        grid = self.sampling_grid(lidar2ego, bev_aug, occ_aug).to(bev.dtype)
-        return F.grid_sample(bev, grid, mode="bilinear", padding_mode="zeros", align_corners=False)
+        return F.grid_sample(bev, grid.to(bev.dtype), mode="bilinear", padding_mode="zeros", align_corners=False)

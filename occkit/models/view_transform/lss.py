@@ -7,8 +7,8 @@ context along the ray. Splat: each copy is summed into the voxel of the target g
 The reference does the splat with a custom CUDA kernel (``bev_pool_v2``) fed with precomputed index lists. occkit
 keeps the index lists (a :class:`PoolingPlan`) and replaces the kernel by one gather, one multiply and one
 ``index_add``, whose backward autograd derives; it exports to ONNX with standard operators (Gather, Mul and a
-summing ScatterElements), the plan's index lists becoming graph inputs. With fixed calibration the plan is computed
-once and reused, as the reference measures its speed.
+summing ScatterElements). For one rig the plan is computed once and reused (:mod:`occkit.models.base`), as the
+reference measures its speed.
 
 Pipeline, at FlashOcc's M0 size (one sample, six cameras)::
 
@@ -27,12 +27,14 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import ClassVar
 
 import torch
 from torch import Tensor, nn
 
 from occkit.geometry.camera import invert_image_aug
 from occkit.geometry.grid import VoxelGrid
+from occkit.models.base import FIXED_CALIBRATION_RETIRED
 from occkit.models.indexing import take
 
 __all__ = [
@@ -53,6 +55,9 @@ __all__ = [
 class LSSConfig:
     """LSS view transform (FlashOcc's ``LSSViewTransformer`` with its 1x1 depth net)."""
 
+    #: Keys of older versions, skipped on load (see :func:`occkit.config.from_dict`).
+    RETIRED_KEYS: ClassVar[dict[str, str]] = {"fixed_calibration": FIXED_CALIBRATION_RETIRED}
+
     image_size: tuple[int, int] = (256, 704)
     """``(H, W)`` of the augmented input images, pixels; the frustum is laid over this image."""
     feature_stride: int = 16
@@ -67,8 +72,6 @@ class LSSConfig:
     """Channels of the image features."""
     context_channels: int = 64
     """Channels of the context vector splatted along each ray (the BEV feature width per height bin)."""
-    fixed_calibration: bool = False
-    """Reuse the first pooling plan at inference (one rig, no augmentation); training always recomputes it."""
     truncate_indices: bool = False
     """False: voxel index ``floor((p - min) / size)`` (occkit's grid convention). True: the reference's
     ``.long()``, which truncates toward zero and so also keeps points up to one voxel below each lower bound in
@@ -370,7 +373,6 @@ class LSSViewTransform(nn.Module):
         self.num_depth_bins = cfg.num_depth_bins
         self.depth_net = nn.Conv2d(cfg.in_channels, self.num_depth_bins + cfg.context_channels, kernel_size=1)
         self.out_channels = cfg.context_channels * cfg.grid_size[2]
-        self._cached_plan: PoolingPlan | None = None
 
     def plan(
         self,
@@ -383,17 +385,11 @@ class LSSViewTransform(nn.Module):
     ) -> PoolingPlan:
         """The pooling plan for a batch's geometry.
 
-        With ``fixed_calibration`` in eval mode the first plan is cached and returned for later calls with the
-        same number of samples and cameras, whatever matrices they pass; :meth:`reset_plan` forgets it.
-
         Args:
             intrinsics: ``(B, N, 3, 3)``; cam2ego: ``(B, N, 4, 4)``; img_aug: ``(B, N, 3, 3)`` or None;
             occ_aug: ``(B, 4, 4)`` or None; image_size: ``(H, W)`` of the augmented images (None: the config's);
             camera_mask: ``(B, N)`` bool or None, see :func:`make_pooling_plan`.
         """
-        cached = self._cached_plan
-        if cached is not None and not self.training and cached.point_shape[:2] == tuple(intrinsics.shape[:2]):
-            return cached
         # Built per call rather than kept as a buffer: it is tiny, and a buffer would follow module.half() and lose
         # pixel precision.
         image_size = self.cfg.image_size if image_size is None else image_size
@@ -401,14 +397,7 @@ class LSSViewTransform(nn.Module):
         points = lift_geometry(points_uvd, intrinsics.float(), cam2ego.float(),
                                None if img_aug is None else img_aug.float(),
                                None if occ_aug is None else occ_aug.float())  # fmt: skip
-        plan = make_pooling_plan(points, self.grid, camera_mask, self.cfg.truncate_indices)
-        if self.cfg.fixed_calibration and not self.training:
-            self._cached_plan = plan
-        return plan
-
-    def reset_plan(self) -> None:
-        """Forget a cached plan (after a calibration change)."""
-        self._cached_plan = None
+        return make_pooling_plan(points, self.grid, camera_mask, self.cfg.truncate_indices)
 
     def forward(self, features: Tensor, plan: PoolingPlan) -> tuple[Tensor, Tensor]:
         """Lift and splat.

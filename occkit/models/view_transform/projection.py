@@ -6,14 +6,14 @@ image augmentation applied), kept where in front of the camera and inside the au
 from the image features and averaged over the cameras that see them; height is folded into channels, giving
 ``(B, Z * C, X, Y)``. V2 (the public code's later variant) takes only the first camera that sees a point.
 
-The sampling is a :class:`SamplingPlan`: which (sample, camera) sees which voxel and where. With fixed calibration
-(inference on one rig) it is computed once and reused, like the precomputed ranks of LSS.
+The sampling is a :class:`SamplingPlan`: which (sample, camera) sees which voxel and where. For one rig it is
+computed once and reused (:mod:`occkit.models.base`), like the precomputed ranks of LSS.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal
+from typing import ClassVar, Literal
 
 import torch
 import torch.nn.functional as F
@@ -21,6 +21,7 @@ from torch import Tensor, nn
 
 from occkit.geometry.grid import VoxelGrid
 from occkit.geometry.se3 import invert_transform
+from occkit.models.base import FIXED_CALIBRATION_RETIRED
 
 __all__ = ["ProjectionConfig", "SamplingPlan", "projection_matrices", "make_sampling_plan", "ProjectionViewTransform"]
 
@@ -28,6 +29,9 @@ __all__ = ["ProjectionConfig", "SamplingPlan", "projection_matrices", "make_samp
 @dataclass(frozen=True)
 class ProjectionConfig:
     """Voxel-centre projection view transform."""
+
+    #: Keys of older versions, skipped on load (see :func:`occkit.config.from_dict`).
+    RETIRED_KEYS: ClassVar[dict[str, str]] = {"fixed_calibration": FIXED_CALIBRATION_RETIRED}
 
     point_cloud_range: tuple[float, float, float, float, float, float] = (-54.0, -54.0, -5.0, 54.0, 54.0, 3.0)
     """Extent of the sampled volume in the LiDAR frame (x_min, y_min, z_min, x_max, y_max, z_max), metres."""
@@ -39,8 +43,6 @@ class ProjectionConfig:
     """Channels after the 1x1 reduction applied before sampling."""
     mode: Literal["average", "first"] = "average"
     """``average``: mean over the cameras that see a voxel (paper V1); ``first``: the first such camera (code V2)."""
-    fixed_calibration: bool = False
-    """Reuse the first sampling plan at inference (one rig, no augmentation); training always recomputes it."""
 
 
 @dataclass
@@ -138,7 +140,6 @@ class ProjectionViewTransform(nn.Module):
         self.reduce = nn.Conv2d(cfg.in_channels, cfg.out_channels, 1) if cfg.in_channels != cfg.out_channels else None
         self.cfg = cfg
         self.out_channels = cfg.out_channels * cfg.grid_size[2]
-        self._cached_plan: SamplingPlan | None = None
 
     def plan(
         self,
@@ -151,20 +152,18 @@ class ProjectionViewTransform(nn.Module):
         camera_mask: Tensor | None = None,
     ) -> SamplingPlan:
         """The sampling plan for a batch's geometry (shapes as in :func:`projection_matrices`)."""
-        if self._cached_plan is not None and not self.training:
-            return self._cached_plan
         projection = projection_matrices(intrinsics, cam2ego, img_aug, lidar2ego, bev_aug)
-        plan = make_sampling_plan(self.centers, projection.float(), image_size, camera_mask, self.cfg.mode)
-        if self.cfg.fixed_calibration and not self.training:
-            self._cached_plan = plan
-        return plan
-
-    def reset_plan(self) -> None:
-        """Forget a cached plan (after a calibration change)."""
-        self._cached_plan = None
+        return make_sampling_plan(self.centers, projection.float(), image_size, camera_mask, self.cfg.mode)
 
     def forward(self, features: Tensor, plan: SamplingPlan) -> Tensor:
-        batch, cameras = features.shape[:2]
+        """Sample and average. ``features (B, N, C_in, h, w)`` -> ``(B, Z * C_out, X, Y)``.
+
+        The samples are added camera by camera: within one (sample, camera) every voxel is hit once (padding aside),
+        but a voxel seen by two cameras is hit twice, and one ``index_add`` over all cameras exports to a
+        ScatterND(reduction="add") that onnxruntime spreads over threads without guarding repeated rows. On a CPU
+        the order of the additions, and so the result, is the same as one ``index_add``.
+        """
+        batch = features.shape[0]
         flat = features.flatten(0, 1)  # (B*N, C_in, h, w)
         if self.reduce is not None:
             flat = self.reduce(flat)
@@ -173,7 +172,8 @@ class ProjectionViewTransform(nn.Module):
                                 align_corners=False)  # (B*N, C, L, 1)
         sampled = sampled[..., 0].transpose(1, 2) * plan.weight[..., None].to(flat.dtype)  # (B*N, L, C)
         volume = flat.new_zeros(batch * plan.num_voxels + 1, channels)  # last row absorbs padding
-        volume = volume.index_add(0, plan.target.flatten(), sampled.flatten(0, 1))
+        for camera in range(sampled.shape[0]):
+            volume.index_add_(0, plan.target[camera], sampled[camera])
         x, y, z = self.cfg.grid_size
         volume = volume[:-1].view(batch, x, y, z, channels)
         # (B, X, Y, Z, C) -> (B, Z, C, X, Y) -> (B, Z*C, X, Y): channel z * C + c, as the reference folds height.

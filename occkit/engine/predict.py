@@ -1,0 +1,48 @@
+"""Prediction with a trained model: one ``<token>.npz`` file per key frame of a dataset split
+(:func:`occkit.metrics.evaluate.write_prediction`).
+
+It runs over the split in order, sharded over ranks under torchrun (each rank writes the files of its share).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import nn
+
+from occkit.data.dataset import OccupancyDataset
+from occkit.engine import distributed
+from occkit.engine.evaluate import split_loader
+from occkit.metrics.evaluate import write_prediction
+
+__all__ = ["predict_to_folder"]
+
+
+@torch.no_grad()
+def predict_to_folder(model: nn.Module, dataset: OccupancyDataset, out: Path, batch_size: int = 1, workers: int = 0,
+                      context: distributed.Context | None = None,
+                      progress: Callable[[int], None] | None = None) -> dict[str, int]:  # fmt: skip
+    """Write ``out/<token>.npz`` predictions of every frame of ``dataset`` (this rank's share under torchrun).
+
+    Returns:
+        ``written`` and ``skipped`` (frames that failed to load under ``on_error="skip"``), summed over ranks.
+    """
+    device = next(model.parameters()).device
+    was_training = model.training
+    model.eval()
+    loader = split_loader(dataset, batch_size, workers, context)
+    share, written = len(loader.sampler), 0
+    for index, batch in enumerate(loader):
+        if len(batch) > 0:  # else every frame of the batch failed to load (on_error="skip")
+            semantics = model.predict(batch.to(device)).semantics.cpu().numpy()
+            for token, grid in zip(batch.tokens, semantics, strict=True):
+                write_prediction(out, token, grid)
+            written += len(batch)
+        if progress is not None:
+            progress(min(batch_size, share - index * batch_size))
+    model.train(was_training)
+    written, skipped = (int(n) for n in distributed.all_reduce_sum(np.array([written, share - written])))
+    return {"written": written, "skipped": skipped}

@@ -1,0 +1,186 @@
+"""What every occupancy architecture is: a plan from calibration, a network over inputs and plan, a description.
+
+A model's forward pass has two parts with different lifetimes:
+
+* the **plan**: every tensor that depends only on the rig and the augmentation, not on pixels or points (LSS's
+  pooling ranks, the projection's sampling grid, the BVRE grid, camera parameters). It is a dataclass of tensors
+  from :meth:`OccupancyModel.plan`;
+* the **network**: :meth:`OccupancyModel.network` maps the frame's inputs (images, points) and a plan to the
+  outputs.
+
+``forward(batch) = network(inputs(batch), plan(batch))``. Training and evaluation compute the plan on every call;
+the inference fast path reuses the first one (:attr:`OccupancyModel.reuse_plan`, set by
+:func:`occkit.models.inference.fix_calibration`); the deployed network (:mod:`occkit.models.deployment`) keeps it as
+constant buffers. All of them run the same :meth:`~OccupancyModel.network`.
+
+An :class:`Architecture` is what the rest of occkit knows of a model family: its config and model classes, its
+zoo presets and its benchmark stages, declared at the bottom of the family's model file.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from typing import Any
+
+from torch import Tensor, nn
+
+from occkit.experiment import Experiment
+from occkit.types import Batch, ModelOutput, OccPrediction
+
+__all__ = ["FIXED_CALIBRATION_RETIRED", "OccupancyModel", "Architecture", "Deployment", "CameraInputs", "plan_tensors",
+           "plan_with_tensors"]
+
+#: Why ``fixed_calibration``, a key of older view-transform and DA-Occ configs, is gone.
+FIXED_CALIBRATION_RETIRED = ("a fixed rig is an inference optimisation now (occkit bench's fixed_calibration, "
+                             "occkit.models.inference.fix_calibration), not a model setting")
+
+
+class OccupancyModel(nn.Module):
+    """Base of the occupancy architectures: ``forward(batch) = network(inputs(batch), plan(batch))``.
+
+    Subclasses implement :meth:`plan`, :meth:`inputs`, :meth:`network`, :meth:`loss` and :meth:`deployment`.
+    """
+
+    reuse_plan: bool = False
+    """In eval mode, compute the plan once and reuse it while the batch size and image size stay the same (one rig,
+    no test-time augmentation). Set by :func:`occkit.models.inference.fix_calibration`."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self._reused: tuple[tuple, Any] | None = None
+
+    def plan(self, batch: Batch) -> Any:
+        """The calibration-only tensors of ``batch``'s rig and augmentation (a dataclass of tensors)."""
+        raise NotImplementedError
+
+    def inputs(self, batch: Batch) -> dict[str, Tensor]:
+        """The frame's inputs to :meth:`network`, by name."""
+        raise NotImplementedError
+
+    def network(self, inputs: Mapping[str, Tensor], plan: Any) -> ModelOutput:
+        """The outputs for ``inputs`` (from :meth:`inputs`) under ``plan`` (from :meth:`plan`)."""
+        raise NotImplementedError
+
+    def loss(self, output: ModelOutput, batch: Batch) -> dict[str, Tensor]:
+        """Weighted loss terms; their sum is the training loss."""
+        raise NotImplementedError
+
+    def deployment(self, batch: Batch) -> Deployment:
+        """The graph inputs of this model's fixed-rig network for ``batch``'s rig (:mod:`occkit.models.deployment`);
+        camera images by default."""
+        return CameraInputs(batch)
+
+    def current_plan(self, batch: Batch) -> Any:
+        """:meth:`plan`, or the reused one under :attr:`reuse_plan` in eval mode."""
+        if not self.reuse_plan or self.training:
+            return self.plan(batch)
+        images = None if batch.images is None else tuple(batch.images.shape)
+        key = (len(batch), images)
+        if self._reused is None or self._reused[0] != key:
+            self._reused = (key, self.plan(batch))
+        return self._reused[1]
+
+    def forward(self, batch: Batch) -> ModelOutput:
+        return self.network(self.inputs(batch), self.current_plan(batch))
+
+    def predict(self, batch: Batch) -> OccPrediction:
+        """Class ids ``(B, X, Y, Z)`` uint8."""
+        raise NotImplementedError
+
+
+def plan_tensors(plan: Any, prefix: str = "") -> dict[str, Tensor]:
+    """The tensors of a plan (a dataclass, possibly nested, or None), by dotted path."""
+    if plan is None:
+        return {}
+    if isinstance(plan, Tensor):
+        return {prefix: plan}
+    if not dataclasses.is_dataclass(plan):
+        return {}
+    found = {}
+    for field in dataclasses.fields(plan):
+        found.update(plan_tensors(getattr(plan, field.name), f"{prefix}{field.name}."))
+    return {path.rstrip("."): tensor for path, tensor in found.items()}
+
+
+def plan_with_tensors(plan: Any, tensors: Mapping[str, Tensor], prefix: str = "") -> Any:
+    """``plan`` with its tensors replaced by ``tensors`` (paths as :func:`plan_tensors` gives them)."""
+    if isinstance(plan, Tensor):
+        return tensors[prefix.rstrip(".")]
+    if plan is None or not dataclasses.is_dataclass(plan):
+        return plan
+    changes = {f.name: plan_with_tensors(getattr(plan, f.name), tensors, f"{prefix}{f.name}.")
+               for f in dataclasses.fields(plan)}  # fmt: skip
+    return dataclasses.replace(plan, **changes)
+
+
+class Deployment(nn.Module):
+    """The graph inputs of a model's fixed-rig network (:mod:`occkit.models.deployment`), as the model declares them.
+
+    :meth:`inputs` makes them from a batch of the rig, outside the graph; :meth:`forward` runs inside the graph and
+    turns them into the inputs of :meth:`OccupancyModel.network` (the identity unless a subclass says otherwise).
+    """
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.input_names: list[str] = []
+        """Names of the graph inputs, in order."""
+        self.input_docs: dict[str, str] = {}
+        """Input name -> what it holds, with its shape."""
+        self.dynamic_axes: dict[str, dict[int, str]] = {}
+        """Input name -> {axis: name} of the axes whose size changes from frame to frame."""
+
+    def declare(self, name: str, doc: str, dynamic_axes: dict[int, str] | None = None) -> None:
+        """Add a graph input."""
+        self.input_names.append(name)
+        self.input_docs[name] = doc
+        if dynamic_axes:
+            self.dynamic_axes[name] = dynamic_axes
+
+    def inputs(self, batch: Batch) -> dict[str, Tensor]:
+        """The graph inputs for a batch of the same rig, by name, in :attr:`input_names` order."""
+        raise NotImplementedError
+
+    def forward(self, inputs: Mapping[str, Tensor]) -> Mapping[str, Tensor]:
+        return inputs
+
+
+class CameraInputs(Deployment):
+    """One graph input, ``images (B, N, 3, H, W)``, of the reference batch's shape."""
+
+    def __init__(self, batch: Batch) -> None:
+        super().__init__()
+        if batch.images is None:
+            raise ValueError("the model needs camera images but the reference batch has none")
+        self.image_shape = tuple(batch.images.shape)
+        self.declare("images", f"{self.image_shape} float32 normalised camera images (test transform)")
+
+    def inputs(self, batch: Batch) -> dict[str, Tensor]:
+        images = batch.images
+        if images is None or tuple(images.shape) != self.image_shape:
+            got = None if images is None else tuple(images.shape)
+            raise ValueError(f"the network was made for images of shape {self.image_shape}, got {got}")
+        return {"images": images}
+
+
+@dataclass(frozen=True)
+class Architecture:
+    """A model family as the zoo, the engine, the benchmark and the exporter see it."""
+
+    name: str
+    """The ``architecture`` key of experiments and checkpoints."""
+    config: type
+    """The model's config dataclass."""
+    model: Callable[[Any], OccupancyModel]
+    """The model class: ``model(config)``."""
+    presets: Mapping[str, Callable[[], Experiment]]
+    """Zoo entry name -> the function returning its whole experiment (its docstring describes the entry)."""
+    stages: Mapping[str, tuple[str, ...]]
+    """Benchmark stage -> the model's child modules that make it up; work outside them is reported as ``other``."""
+
+    def build(self, config: Any) -> OccupancyModel:
+        """A freshly initialised model of ``config``."""
+        if not isinstance(config, self.config):
+            raise TypeError(f"{self.name} needs a {self.config.__name__}, got {type(config).__name__}")
+        return self.model(config)
