@@ -8,6 +8,7 @@ package). Imports at any depth count, those inside functions too: a function-loc
 from __future__ import annotations
 
 import ast
+import re
 from pathlib import Path
 
 import pytest
@@ -150,3 +151,12 @@ def test_no_import_cycles():
 )
 def test_the_cycle_finder(graph, expected):
     assert _cycles(graph) == expected
+
+
+def test_the_documented_layers_are_the_tested_ones():
+    """docs/architecture.md shows contributors the layer order; it must be the one this test enforces."""
+    page = (PACKAGE.parent / "docs" / "architecture.md").read_text()
+    section = page.split("## Layers", 1)[1].split("\n## ", 1)[0]
+    rows = [line.split("|") for line in section.splitlines() if line.startswith("| ") and line[2:3].isdigit()]
+    documented = tuple(tuple(re.findall(r"`([\w.]+)`", row[2])) for row in rows)
+    assert documented == LAYERS, "docs/architecture.md's layer table differs from LAYERS"
