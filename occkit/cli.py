@@ -133,7 +133,7 @@ def _run_sim(args: argparse.Namespace) -> int:
 def _add_index(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--root", type=Path, required=True, help="dataset root (holds <version>/, samples/, gts/)")
     parser.add_argument("--version", required=True, help="table folder, e.g. v1.0-trainval, v1.0-mini, v1.0-synth")
-    parser.add_argument("--out", type=Path, required=True, help="index JSON file to write")
+    parser.add_argument("--out", type=Path, required=True, help="index file to write (.npz of typed columns)")
     parser.add_argument("--max-sweeps", type=integer(0), default=10,
                         help="earlier LiDAR sweeps per key frame (default 10)")
     parser.add_argument(
@@ -686,7 +686,7 @@ COMMANDS: dict[str, Command] = {
         _run_info,
     ),
     "sim": ("simulate a synthetic driving dataset in the nuScenes + Occ3D layout", _add_sim, _run_sim),
-    "index": ("index the key frames of a nuScenes-layout dataset as JSON", _add_index, _run_index),
+    "index": ("index the key frames of a nuScenes-layout dataset", _add_index, _run_index),
     "eval-preds": (
         "score Occ3D predictions against a gts/ tree: mIoU, IoU and RayIoU",
         _add_eval_preds,

@@ -16,7 +16,7 @@ from PIL import Image, ImageFile
 from occkit.data import dataset as dataset_module
 from occkit.data.collate import collate
 from occkit.data.dataset import DatasetConfig, OccupancyDataset, SampleError
-from occkit.data.index import load_index, read_index_header, tables_key
+from occkit.data.index import IndexFormatError, load_index, read_index_header, save_index, tables_key
 from occkit.data.transforms import BevAugConfig, ImageAugConfig
 from occkit.geometry.grid import OCC3D_GRID
 from occkit.sim.generate import SimConfig, simulate_dataset
@@ -254,7 +254,7 @@ def test_index_cache_follows_the_tables_content_not_their_modification_time(root
     data = tmp_path / "tables"
     shutil.copytree(root / VERSION, data / VERSION)
     first = _dataset(data, cameras=())
-    cache = data / ".occkit" / f"occkit-index-{VERSION}-0.json"
+    cache = data / ".occkit" / f"occkit-index-{VERSION}-0.npz"
     assert read_index_header(cache)["tables_key"] == tables_key(data, VERSION, 0)
     with monkeypatch.context() as patch:  # unchanged tables: the cache is read, nothing is rebuilt
         patch.setattr(dataset_module, "build_index", None)
@@ -270,19 +270,54 @@ def test_index_cache_follows_the_tables_content_not_their_modification_time(root
     assert read_index_header(cache)["tables_key"] == tables_key(data, VERSION, 0)
 
 
+def _unsafe_token(cache: Path, token: str) -> None:
+    """Rewrite the cache's string ``token`` (a sample token) as ``../../escape_tok``; its header is unchanged."""
+    with np.load(cache) as npz:
+        arrays = {name: npz[name] for name in npz.files}
+    raw, offsets = arrays["strings"].tobytes(), arrays["strings.offsets"]
+    strings = [raw[a:b].decode() for a, b in zip(offsets[:-1], offsets[1:], strict=True)]
+    encoded = [("../../escape_tok" if text == token else text).encode() for text in strings]
+    arrays["strings"] = np.frombuffer(b"".join(encoded), dtype=np.uint8)
+    arrays["strings.offsets"] = np.cumsum([0] + [len(text) for text in encoded])
+    with open(cache, "wb") as stream:
+        np.savez(stream, **arrays)
+
+
 def test_a_corrupt_or_unsafe_index_cache_is_rebuilt_with_a_warning(root, tmp_path):
     data = tmp_path / "tables"
     shutil.copytree(root / VERSION, data / VERSION)
     records = _dataset(data, cameras=()).records
-    cache = data / ".occkit" / f"occkit-index-{VERSION}-0.json"
-    text = cache.read_text()
-    unsafe = text.replace(records[0].token, "../../escape_tok", 1)  # the header's key still matches
-    for content in ("{not json", text[: len(text) // 2], unsafe, "\x00\xff"):
-        cache.write_text(content)
+    cache = data / ".occkit" / f"occkit-index-{VERSION}-0.npz"
+    good = cache.read_bytes()
+    _unsafe_token(cache, records[0].token)  # the header's key still matches
+    unsafe = cache.read_bytes()
+    for content in (b"{not json", good[: len(good) // 2], unsafe, b"\x00\xff", b""):
+        cache.write_bytes(content)
         with pytest.warns(UserWarning, match=rf"{cache.name}: unreadable index cache, rebuilding it"):
             assert _dataset(data, cameras=()).records == records
         assert load_index(cache)[0] == records
-    cache.write_text(text.replace('"tables_key"', '"other_key"', 1))  # no key (an older occkit): rebuilt quietly
+    header = read_index_header(cache)
+    del header["tables_key"]
+    save_index(records, cache, header)  # no key (an older occkit): rebuilt quietly
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         assert _dataset(data, cameras=()).records == records
+    assert "tables_key" in read_index_header(cache)
+
+
+def test_the_json_cache_of_an_older_occkit_is_replaced(root, tmp_path):
+    data = tmp_path / "tables"
+    shutil.copytree(root / VERSION, data / VERSION)
+    old = data / ".occkit" / f"occkit-index-{VERSION}-0.json"
+    old.parent.mkdir()
+    old.write_text('{"format": "occkit-index/1", "version": "v1.0-synth", "tables_key": "sha256:0", "records": [\n]}\n')
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        records = _dataset(data, cameras=()).records
+    cache = old.with_suffix(".npz")
+    assert list(old.parent.iterdir()) == [cache]
+    assert _dataset(data, cameras=(), index=str(cache)).records == records
+    # Named explicitly, a JSON index is one line of error that says how to rebuild it.
+    old.write_text('{"format": "occkit-index/1", "version": "v1.0-synth", "root": "r", "records": [\n]}\n')
+    with pytest.raises(IndexFormatError, match=r"0\.json: a JSON index of an older occkit .* rebuild it with `occkit"):
+        _dataset(data, cameras=(), index=str(old))

@@ -1,4 +1,4 @@
-"""nuScenes tables -> key-frame index: geometry against the simulator's truth, JSON files, splits, bad input, CLI."""
+"""nuScenes tables -> key-frame index: geometry against the simulator's truth, index files, splits, bad input, CLI."""
 
 from __future__ import annotations
 
@@ -7,6 +7,8 @@ import copy
 import dataclasses
 import json
 import os
+import pickle
+import re
 import shutil
 from collections import defaultdict
 from pathlib import Path
@@ -22,6 +24,7 @@ from occkit.cli import main
 from occkit.data.index import (
     INDEX_FORMAT,
     FrameRecord,
+    FrameRecords,
     IndexFormatError,
     build_index,
     index_tables,
@@ -240,10 +243,37 @@ def test_box_labels_follow_the_annotations(root, records):
 
 
 # ----------------------------------------------------------------------------------------------------- files
-def test_json_round_trip(records, tmp_path):
-    path = save_index(records, tmp_path / "sub" / "index.json", {"version": VERSION, "root": "x", "max_sweeps": 10})
+META = {"version": VERSION, "root": "x", "max_sweeps": 10}
+DOCS = Path(__file__).resolve().parents[1] / "docs" / "data.md"
+
+
+def _arrays(path: Path) -> dict[str, np.ndarray]:
+    with np.load(path) as npz:
+        return {name: npz[name] for name in npz.files}
+
+
+def _write(path: Path, arrays: dict[str, np.ndarray]) -> None:
+    """An index file of other arrays (np.savez: the reader takes any .npz)."""
+    with open(path, "wb") as stream:
+        np.savez(stream, **arrays)
+
+
+def _point(path: Path, column: str, row: int, text: str) -> None:
+    """Make row ``row`` of string column ``column`` of an index file read ``text`` (a string added to its table)."""
+    arrays = _arrays(path)
+    blob = arrays["strings"].tobytes() + text.encode()
+    arrays["strings"] = np.frombuffer(blob, dtype=np.uint8)
+    arrays["strings.offsets"] = np.append(arrays["strings.offsets"], len(blob))
+    arrays[column] = arrays[column].copy()
+    arrays[column][row] = len(arrays["strings.offsets"]) - 2
+    _write(path, arrays)
+
+
+def test_index_file_round_trip(records, tmp_path):
+    path = save_index(records, tmp_path / "sub" / "index.npz", META)
+    assert list(path.parent.iterdir()) == [path]  # the partial file was renamed
     loaded, meta = load_index(path)
-    assert loaded == records
+    assert loaded == records and records == loaded and isinstance(loaded, FrameRecords)
     assert meta == {
         "format": INDEX_FORMAT,
         "created_by": meta["created_by"],
@@ -253,35 +283,123 @@ def test_json_round_trip(records, tmp_path):
         "frames": len(records),
     }
     assert meta["created_by"].startswith("occkit ")
-    assert json.loads(path.read_text())["records"][0] == records[0].to_dict()
-    assert not (tmp_path / "sub" / ".index.json.partial").exists()
     record = records[1]
     assert FrameRecord.from_dict(json.loads(json.dumps(record.to_dict()))) == record
     assert record != records[2]
     with pytest.raises(ValueError, match="read-only"):
         record.boxes_ego[0, 0] = 1.0
+    with pytest.raises(ValueError, match="read-only"):
+        loaded[1].sweeps[0].sweep2lidar[0, 0] = 1.0
+    # The same bytes for the same records: no time stamps inside.
+    assert save_index(records, tmp_path / "again.npz", META).read_bytes() == path.read_bytes()
+
+
+def test_loaded_records_act_as_a_list(records, tmp_path):
+    loaded, _ = load_index(save_index(records, tmp_path / "index.npz", META))
+    assert len(loaded) == len(records) and loaded[1] is loaded[1]  # built once, then kept
+    assert loaded[-1] == records[-1] and loaded[1:4] == records[1:4] and list(loaded) == records
+    assert loaded != records[:-1] and loaded != records[::-1]
+    with pytest.raises(IndexError):
+        loaded[len(records)]
+    # DataLoader workers that spawn get the dataset pickled.
+    assert pickle.loads(pickle.dumps(loaded)) == records
+    shorter = dataclasses.replace(loaded[1], sweeps=loaded[1].sweeps[:2])  # as `occkit index --from-info` does
+    assert shorter.sweeps == records[1].sweeps[:2] and shorter.cameras == records[1].cameras
+
+
+def test_index_file_columns_are_the_documented_arrays(records, tmp_path):
+    arrays = _arrays(save_index(records, tmp_path / "index.npz", META))
+    boxes = [record.num_boxes for record in records]
+    assert arrays["boxes_ego"].dtype == np.float64 and arrays["boxes_ego"].shape == (sum(boxes), 9)
+    np.testing.assert_array_equal(arrays["boxes.offsets"], np.cumsum([0, *boxes]))
+    np.testing.assert_array_equal(arrays["boxes_lidar"], np.concatenate([r.boxes_lidar for r in records]))
+    np.testing.assert_array_equal(arrays["ego2global"], np.stack([r.ego2global for r in records]))
+    sweeps = [sweep for record in records for sweep in record.sweeps]
+    np.testing.assert_array_equal(arrays["sweeps.sweep2lidar"], np.stack([s.sweep2lidar for s in sweeps]))
+    cameras = [camera for record in records for camera in record.cameras.values()]
+    np.testing.assert_array_equal(arrays["cameras.width"], [camera.width for camera in cameras])
+    strings = arrays["strings"].tobytes()
+    offsets = arrays["strings.offsets"]
+    text = [strings[a:b].decode() for a, b in zip(offsets[:-1], offsets[1:], strict=True)]
+    assert [text[code] for code in arrays["token"]] == [record.token for record in records]
+    assert [text[code] for code in arrays["cameras.channel"][:2]] == ["CAM_FRONT", "CAM_BACK"]
+    assert all(arrays[name].dtype == np.int32 for name in ("token", "occ_path", "sweeps.path", "box_instances"))
+    assert json.loads(str(arrays["header"]))["frames"] == len(records)
+    documented = DOCS.read_text()
+    assert [name for name in arrays if f"`{name}`" not in documented] == []
 
 
 def test_save_index_needs_the_build_meta(records, tmp_path):
     with pytest.raises(ValueError, match="max_sweeps"):
-        save_index(records, tmp_path / "index.json", {"version": VERSION, "root": "x"})
+        save_index(records, tmp_path / "index.npz", {"version": VERSION, "root": "x"})
 
 
 def test_load_index_names_the_file_on_bad_input(records, tmp_path):
-    path = tmp_path / "index.json"
+    path = tmp_path / "index.npz"
     path.write_text(json.dumps({"format": "mmdet3d-infos", "records": []}))
-    with pytest.raises(IndexFormatError, match=r"index\.json: not an occkit index \(format 'mmdet3d-infos'"):
+    with pytest.raises(IndexFormatError, match=r"index\.npz: not an occkit index \(an occkit-index/2 \.npz file\)"):
         load_index(path)
-    path.write_text("{not json")
-    with pytest.raises(IndexFormatError, match=r"index\.json: not valid JSON"):
+    save_index(records[:2], path, META)
+    _write(path, _arrays(path) | {"header": np.array(json.dumps({"format": "mmdet3d-infos"}))})
+    with pytest.raises(IndexFormatError, match=r"index\.npz: not an occkit index \(format 'mmdet3d-infos', expected"):
         load_index(path)
-    broken = records[0].to_dict()
-    broken["lidar2ego"][2] = [0.0, "1", 0.0, 0.0]
-    path.write_text(json.dumps({"format": INDEX_FORMAT, "records": [records[1].to_dict(), broken]}))
-    with pytest.raises(IndexFormatError, match=r"index\.json: record 1\.lidar2ego\[2\]: expected a list of 4"):
+    save_index(records[:2], path, META)
+    path.write_bytes(path.read_bytes()[:-100])  # the zip directory is at the end
+    with pytest.raises(IndexFormatError, match=r"index\.npz: damaged index file \(BadZipFile"):
         load_index(path)
-    with pytest.raises(FileNotFoundError, match="missing.json"):
-        load_index(tmp_path / "missing.json")
+    save_index(records[:2], path, META)
+    arrays = _arrays(path)
+    arrays["lidar2ego"] = arrays["lidar2ego"].copy()
+    arrays["lidar2ego"][1, 2, 1] = np.nan
+    _write(path, arrays)
+    with pytest.raises(IndexFormatError, match=r"index\.npz: record 1\.lidar2ego\[2\]: expected a list of 4 finite"):
+        load_index(path)
+    arrays["lidar2ego"] = arrays["lidar2ego"][:, :3]
+    _write(path, arrays)
+    with pytest.raises(IndexFormatError, match=r"array 'lidar2ego' is float64 \(2, 3, 4\), expected float64 \(2, 4"):
+        load_index(path)
+    with pytest.raises(FileNotFoundError, match="missing.npz"):
+        load_index(tmp_path / "missing.npz")
+
+
+def test_values_in_the_columns_name_record_and_field(records, tmp_path):
+    path = save_index(records[:3], tmp_path / "index.npz", META)
+    arrays = _arrays(path)
+    boxes, sweeps, channels = records[0].num_boxes, len(records[0].sweeps), arrays["cameras.channel"]
+    cases = [  # array, where, value, message
+        ("boxes_ego", (boxes + 2, 4), np.inf, r"record 1\.boxes_ego\[2\]: expected a list of 9 finite numbers, got \["),
+        ("sweeps.time_lag", sweeps + 3, np.nan, r"record 1\.sweeps\[3\]\.time_lag: expected a finite number, got nan"),
+        ("cameras.intrinsics", (3, 0, 0), np.nan, r"record 1\.cameras\.CAM_BACK\.intrinsics\[0\]: expected a list of"),
+        ("box_num_lidar_pts", 1, -4, r"record 0\.box_num_lidar_pts\[1\]: expected a count"),
+        ("token", 2, 10**6, r"record 2\.token: expected a string, got string 1000000 of a table of \d+"),
+        ("box_categories", 0, -1, r"record 0\.box_categories\[0\]: expected a string, got null"),
+        ("cameras.channel", 1, channels[0], r"record 0\.cameras\[1\]\.channel: 'CAM_FRONT' is repeated"),
+        ("sweeps.offsets", 1, 99, r"array 'sweeps\.offsets' must start at 0 and never fall"),
+    ]  # fmt: skip
+    for name, where, value, message in cases:
+        changed = arrays[name].copy()
+        changed[where] = value
+        _write(path, arrays | {name: changed})
+        with pytest.raises(IndexFormatError, match=r"^.*index\.npz: " + message):
+            load_index(path)
+    _write(path, arrays | {"extra": np.zeros(3)})
+    with pytest.raises(IndexFormatError, match=r"index\.npz: unknown array\(s\) extra"):
+        load_index(path)
+
+
+def test_a_json_index_of_an_older_occkit_says_how_to_rebuild_it(tmp_path):
+    path = tmp_path / "my index.json"
+    header = {"format": "occkit-index/1", "created_by": "occkit 0.1.0", "version": VERSION, "root": "data/synth",
+              "max_sweeps": 3, "split": "val", "frames": 0}  # fmt: skip
+    path.write_text(json.dumps(header)[:-1] + ', "records": [\n\n]}\n')
+    message = (
+        rf"^{re.escape(str(path))}: a JSON index of an older occkit \(occkit-index/1\); this occkit reads "
+        r"occkit-index/2 \(\.npz\): rebuild it with `occkit index --root data/synth --version v1\.0-synth "
+        rf"--max-sweeps 3 --split val --out '{re.escape(str(path))}'`$"
+    )
+    for read in (load_index, read_index_header):
+        with pytest.raises(IndexFormatError, match=message):
+            read(path)
 
 
 # ----------------------------------------------------------------------------------------------------- fuzz
@@ -347,6 +465,48 @@ def test_from_dict_gives_index_errors_only(records, value, key):
         FrameRecord.from_dict(broken)
     with pytest.raises(IndexFormatError):
         FrameRecord.from_dict(value)
+
+
+@pytest.fixture(scope="module")
+def small_index(records, tmp_path_factory) -> tuple[dict[str, np.ndarray], Path]:
+    """The arrays of an index file of three frames, and a file to write changed ones to."""
+    folder = tmp_path_factory.mktemp("fuzz")
+    return _arrays(save_index(records[:3], folder / "good.npz", META)), folder / "index.npz"
+
+
+_VALUES = {
+    "f": st.sampled_from([np.nan, np.inf, -1.0, 0.0, 1e300]),
+    "i": st.one_of(st.integers(-3, 3), st.sampled_from([2**31 - 1, -(2**31), 10**6])),
+    "u": st.integers(0, 255),
+    "b": st.booleans(),
+    "U": st.text(max_size=8),
+}
+
+
+@settings(max_examples=300, deadline=None)
+@given(data=st.data())
+def test_load_index_gives_index_errors_only(small_index, data):
+    """Any array dropped, retyped, cut short or given another value: the file loads (and every record reads) or
+    IndexFormatError says why."""
+    arrays, path = small_index
+    arrays = dict(arrays)
+    name = data.draw(st.sampled_from(sorted(arrays)), label="array")
+    array = arrays[name].copy()
+    change = data.draw(st.sampled_from(["drop", "dtype", "shorter", "value"]), label="change")
+    if change == "drop":
+        del arrays[name]
+    elif change == "dtype" and array.dtype.kind != "U":
+        arrays[name] = array.astype(data.draw(st.sampled_from([np.int32, np.int64, np.float64, np.uint8, np.bool_])))
+    elif change == "shorter" and array.ndim:
+        arrays[name] = array[:-1]
+    elif array.size:
+        flat = array.reshape(-1)
+        flat[data.draw(st.integers(0, flat.size - 1), label="at")] = data.draw(_VALUES[array.dtype.kind], label="value")
+        arrays[name] = flat.reshape(array.shape)
+    _write(path, arrays)
+    with contextlib.suppress(IndexFormatError):
+        loaded, _ = load_index(path)
+        assert len(list(loaded)) == 3
 
 
 def test_from_dict_missing_and_unknown_keys(records):
@@ -468,7 +628,7 @@ def test_read_split_file(tmp_path):
 
 # ----------------------------------------------------------------------------------------------------- CLI
 def test_cli_index_end_to_end(root, records, tmp_path, capsys):
-    out = tmp_path / "val.json"
+    out = tmp_path / "val.npz"
     assert main(["index", "--root", str(root), "--version", VERSION, "--out", str(out), "--split", "val"]) == 0
     summary = capsys.readouterr().out.strip().splitlines()[-1]
     assert summary.startswith("indexed 3 key frames of 1 scene(s) (val)") and str(out) in summary
@@ -486,7 +646,7 @@ def test_cli_index_end_to_end(root, records, tmp_path, capsys):
 
 
 def test_cli_index_bad_input_is_one_line(root, tmp_path, capsys):
-    out = str(tmp_path / "index.json")
+    out = str(tmp_path / "index.npz")
     assert main(["index", "--root", str(root), "--version", VERSION, "--out", out, "--split", "test"]) == 2
     error = capsys.readouterr().err.strip()
     assert error.startswith("occkit index: error:") and "no split 'test'" in error and "\n" not in error
@@ -533,7 +693,7 @@ def test_unsafe_scene_names_and_tokens_are_refused_at_build(tables_copy, records
 
 def test_cli_index_refuses_an_escaping_token(tables_copy, records, tmp_path, capsys):
     _rename_sample(tables_copy, records[4].token, "../../escape_tok")
-    out = tmp_path / "index.json"
+    out = tmp_path / "index.npz"
     assert main(["index", "--root", str(tables_copy), "--version", VERSION, "--out", str(out)]) == 2
     error = capsys.readouterr().err.strip()
     assert error.startswith("occkit index: error: v1.0-synth/sample.json: record '../../escape_tok'.token:")
@@ -562,11 +722,26 @@ def test_unsafe_file_paths_are_refused_at_build(tables_copy, records):
         ("occ_path", "", r"\.occ_path: expected a relative path"),
     ],
 )
-def test_load_index_refuses_unsafe_names_and_paths(records, tmp_path, field, value, message):
-    broken = records[1].to_dict() | {field: value}
-    path = tmp_path / "index.json"
-    path.write_text(json.dumps({"format": INDEX_FORMAT, "records": [records[0].to_dict(), broken]}))
-    with pytest.raises(IndexFormatError, match=r"index\.json: record 1" + message):
+def test_index_files_refuse_unsafe_names_and_paths(records, tmp_path, field, value, message):
+    path = tmp_path / "index.npz"
+    broken = dataclasses.replace(records[1], **{field: value})
+    with pytest.raises(IndexFormatError, match=r"index\.npz: record 1 \(sample .*\)" + message):
+        save_index([records[0], broken], path, META)
+    assert list(tmp_path.iterdir()) == []
+    save_index(records[:2], path, META)
+    _point(path, field, 1, value)
+    with pytest.raises(IndexFormatError, match=r"index\.npz: record 1" + message):
+        load_index(path)
+
+
+def test_index_files_refuse_unsafe_sweep_and_camera_paths(records, tmp_path):
+    path = save_index(records[:2], tmp_path / "index.npz", META)
+    _point(path, "sweeps.path", len(records[0].sweeps) + 2, "../sweeps/x.pcd.bin")
+    with pytest.raises(IndexFormatError, match=r"index\.npz: record 1\.sweeps\[2\]\.path: .*'\.\.' component"):
+        load_index(path)
+    path = save_index(records[:2], tmp_path / "index.npz", META)
+    _point(path, "cameras.path", 3, "C:/images/x.jpg")
+    with pytest.raises(IndexFormatError, match=r"index\.npz: record 1\.cameras\.CAM_BACK\.path: .* absolute path"):
         load_index(path)
 
 
@@ -687,10 +862,13 @@ def test_tables_key_follows_the_content_not_the_modification_time(tables_copy):
 
 
 def test_read_index_header(records, tmp_path):
-    path = save_index(records[:2], tmp_path / "index.json", {"version": VERSION, "root": "x", "max_sweeps": 3})
+    path = save_index(records[:2], tmp_path / "index.npz", META | {"max_sweeps": 3})
     assert read_index_header(path) == load_index(path)[1]
-    path.write_text('{"format": "occkit-index/1", "records": []}')
-    with pytest.raises(IndexFormatError, match="first line is not an occkit index header"):
+    # The header alone is read: a damaged column does not stop it.
+    _write(path, _arrays(path) | {"boxes_ego": np.zeros(3)})
+    assert read_index_header(path)["max_sweeps"] == 3
+    path.write_text('{"format": "occkit-index/2", "records": []}')
+    with pytest.raises(IndexFormatError, match=r"index\.npz: not an occkit index \(an occkit-index/2 \.npz file\)"):
         read_index_header(path)
 
 
@@ -698,6 +876,7 @@ def test_save_index_refuses_nan_and_leaves_no_partial_file(records, tmp_path):
     pose = records[1].ego2global.copy()
     pose[0, 0] = np.nan  # what a zero quaternion gave before it was an error
     broken = dataclasses.replace(records[1], ego2global=pose)
-    with pytest.raises(ValueError, match=rf"index\.json: record 1 \(sample {broken.token}\) holds NaN or infinite"):
-        save_index([records[0], broken], tmp_path / "index.json", {"version": VERSION, "root": "x", "max_sweeps": 1})
+    message = rf"index\.npz: record 1 \(sample {broken.token}\)\.ego2global\[0\]: expected a list of 4 finite numbers"
+    with pytest.raises(ValueError, match=message):
+        save_index([records[0], broken], tmp_path / "index.npz", META)
     assert list(tmp_path.iterdir()) == []

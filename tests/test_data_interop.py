@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import copy
 import dataclasses
-import json
 import math
 import pickle
 from pathlib import Path
@@ -15,7 +14,7 @@ import pytest
 
 from occkit.classes import NUSCENES_TO_DETECTION
 from occkit.cli import main
-from occkit.data.index import FrameRecord, build_index, load_index
+from occkit.data.index import FrameRecord, build_index, load_index, read_index_header
 from occkit.data.interop import (
     DEFAULT_IMAGE_SIZE,
     IGNORED_CATEGORY,
@@ -406,7 +405,7 @@ def test_unknown_or_unreadable_files(root, bevdet, tmp_path):
 # ----------------------------------------------------------------------------------------------------- CLI
 def test_cli_index_from_info(root, records, bevdet, tmp_path, capsys):
     path = _dump(bevdet, tmp_path / "bevdetv2-nuscenes_infos_val.pkl")
-    out = tmp_path / "index.json"
+    out = tmp_path / "index.npz"
     command = ["index", "--root", str(root), "--version", VERSION, "--out", str(out), "--from-info", str(path)]
     assert main(command) == 2
     assert "--trust-pickle only for files from a source you trust" in capsys.readouterr().err and not out.exists()
@@ -418,4 +417,4 @@ def test_cli_index_from_info(root, records, bevdet, tmp_path, capsys):
     assert header["version"] == VERSION and header["max_sweeps"] == 3 and header["from_info"] == str(path)
     expected = [dataclasses.replace(_expected(r), sweeps=r.sweeps[:3]) for r in records]
     _assert_records(loaded, expected)
-    assert json.loads(out.read_text())["frames"] == 2
+    assert read_index_header(out)["frames"] == 2

@@ -1,4 +1,6 @@
+import ast
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -7,6 +9,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
+from occkit.geometry import numpy_se3
 from occkit.geometry.se3 import (
     compose,
     invert_transform,
@@ -240,3 +243,56 @@ def test_transforms_on_cuda_match_cpu():
 def test_bad_shapes_raise_value_error_naming_the_shape(call, message):
     with pytest.raises(ValueError, match=message):
         call()
+
+
+# ------------------------------------------------------------------ numpy twins
+@SETTINGS
+@given(_quaternions(8), _points(8), _points(5))
+def test_numpy_twins_match_the_torch_functions(q, t, points):
+    """occkit.geometry.numpy_se3 (the index and info-file import) computes what the torch functions compute."""
+    transform = transform_from_quaternion(q, t)
+    array = numpy_se3.transform_from_quaternion(q.numpy(), t.numpy())
+    np.testing.assert_allclose(array, transform.numpy(), atol=1e-12, rtol=0)
+    np.testing.assert_allclose(numpy_se3.quaternion_to_matrix(q.numpy()), quaternion_to_matrix(q).numpy(), atol=1e-12)
+    np.testing.assert_allclose(numpy_se3.invert_transform(array), invert_transform(transform).numpy(), atol=1e-12)
+    moved = numpy_se3.transform_points(array, points.numpy()[None])
+    np.testing.assert_allclose(moved, transform_points(transform, points[None]).numpy(), atol=1e-9, rtol=0)
+    rotation, translations = quaternion_to_matrix(q[0]), t[:3]  # broadcast: one rotation, three translations
+    np.testing.assert_allclose(
+        numpy_se3.make_transform(rotation.numpy(), translations.numpy()), make_transform(rotation, translations).numpy()
+    )
+    yaw = torch.atan2(q[:, 1], q[:, 0]) * 2  # angles in (-2 pi, 2 pi]
+    np.testing.assert_allclose(numpy_se3.rotation_about_z(yaw.numpy()), rotation_about_z(yaw).numpy(), atol=1e-15)
+
+
+@SETTINGS
+@given(hnp.arrays(np.float64, (3, 6), elements=_floats(-1.5, 1.5)))
+def test_rotation_yaw_reads_pyquaternions_yaw(angles):
+    """``R = R_x(roll) R_y(pitch) R_z(yaw)``: the yaw comes back (|pitch| < pi / 2), as pyquaternion's
+    ``yaw_pitch_roll[0]``, which nuscenes-devkit takes for a box's yaw."""
+    yaw, pitch, roll = angles * np.array([[2.0], [1.0], [2.0]])
+
+    def about(axis: int, angle: np.ndarray) -> np.ndarray:
+        # Turns the plane of the two other axes, in their order (about y: by -angle; the angles are random anyway).
+        i, j = (k for k in range(3) if k != axis)
+        cos, sin = np.cos(angle), np.sin(angle)
+        matrix = np.tile(np.eye(3), (len(angle), 1, 1))
+        matrix[:, i, i], matrix[:, i, j], matrix[:, j, i], matrix[:, j, j] = cos, -sin, sin, cos
+        return matrix
+
+    rotation = about(0, roll) @ about(1, pitch) @ numpy_se3.rotation_about_z(yaw)
+    np.testing.assert_allclose(numpy_se3.rotation_yaw(rotation), yaw, atol=1e-9)
+
+
+def test_numpy_twins_refuse_a_quaternion_that_is_no_rotation():
+    with pytest.raises(ValueError, match=r"quaternion 1 \[0\.0, 0\.0, 1e-09, 0\.0\] is no rotation \(norm 1e-09"):
+        numpy_se3.quaternion_to_matrix(np.array([[1.0, 0.0, 0.0, 0.0], [0.0, 0.0, 1e-9, 0.0]]))
+    with pytest.raises(ValueError, match="quaternion 0 .* is no rotation"):
+        numpy_se3.transform_from_quaternion(np.array([np.nan, 0.0, 0.0, 1.0]), np.zeros(3))
+
+
+def test_numpy_twins_import_numpy_only():
+    tree = ast.parse(Path(numpy_se3.__file__).read_text())
+    imported = {alias.name for node in ast.walk(tree) if isinstance(node, ast.Import) for alias in node.names}
+    imported |= {node.module for node in ast.walk(tree) if isinstance(node, ast.ImportFrom)}
+    assert imported == {"__future__", "numpy"}

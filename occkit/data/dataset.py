@@ -1,18 +1,21 @@
 """The occupancy dataset: index records -> typed :class:`~occkit.types.Sample` with every transform as a matrix.
 
 Works on any nuScenes + Occ3D layout (the real datasets and occkit's synthetic world). The index is built from the
-nuScenes tables on first use and cached as JSON beside the tables (or in ``~/.cache/occkit`` when the dataset is
-read-only), so there is no separate data-preparation step. The cache is keyed on the tables' content
-(:func:`~occkit.data.index.tables_key`): a changed table rebuilds it, whatever its modification time.
+nuScenes tables on first use and cached (an index file, :func:`~occkit.data.index.save_index`) beside the tables (or
+in ``~/.cache/occkit`` when the dataset is read-only), so there is no separate data-preparation step. The cache is
+keyed on the tables' content (:func:`~occkit.data.index.tables_key`): a changed table rebuilds it, whatever its
+modification time.
 
 Augmentation draws are seeded by ``(seed, epoch, index)``: a run is reproducible whatever the number of workers.
 """
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import warnings
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
@@ -184,11 +187,11 @@ class OccupancyDataset(torch.utils.data.Dataset):
         self.replaced = 0
         """Samples replaced so far under ``refill``, in this process."""
 
-    def _load_records(self) -> list[FrameRecord]:
+    def _load_records(self) -> Sequence[FrameRecord]:
         if self.config.index is not None:
             return load_index(self.config.index)[0]
         max_sweeps = max(self.config.sweeps, 0)
-        name = f"occkit-index-{self.config.version}-{max_sweeps}.json"
+        name = f"occkit-index-{self.config.version}-{max_sweeps}.npz"
         caches = (self.root / ".occkit" / name, Path.home() / ".cache" / "occkit" / _slug(self.root) / name)
         key = tables_key(self.root, self.config.version, max_sweeps)
         for cache in caches:
@@ -200,9 +203,11 @@ class OccupancyDataset(torch.utils.data.Dataset):
         for cache in caches:
             try:
                 save_index(records, cache, meta)
-                break
             except OSError:
                 continue
+            with contextlib.suppress(OSError):  # the JSON cache of an older occkit, never read again: up to a GB
+                cache.with_suffix(".json").unlink(missing_ok=True)
+            break
         return records
 
     def set_epoch(self, epoch: int) -> None:
@@ -366,7 +371,7 @@ def _slug(path: Path) -> str:
     return str(path.resolve()).strip(os.sep).replace(os.sep, "_")
 
 
-def _read_cache(path: Path, key: str) -> list[FrameRecord] | None:
+def _read_cache(path: Path, key: str) -> Sequence[FrameRecord] | None:
     """The records of an index cache built from tables with ``key``; None if there is none, it is of other tables
     (or parameters), or it is unreadable (then with a warning naming the file): the caller rebuilds it."""
     try:

@@ -1,4 +1,4 @@
-"""A plain index of key frames built from the nuScenes tables, saved as JSON (never pickle).
+"""A plain index of key frames built from the nuScenes tables, saved as typed columns in one ``.npz`` (never pickle).
 
 One :class:`FrameRecord` per sample holds everything a data pipeline needs without the tables: file paths
 (relative to the dataset root), calibrations and poses as 4x4 matrices, the LiDAR sweeps before the key frame with
@@ -15,26 +15,42 @@ ego pose is the one at the LIDAR_TOP key-frame timestamp (the Occ3D label frame)
   ego's pitch and roll times the vertical velocity, which is small on roads);
 * box yaw is pyquaternion's ``yaw_pitch_roll[0]`` of the box rotation in the frame, as both take it.
 
-The JSON file is ``{"format": "occkit-index/1", "version", "root", "max_sweeps", "created_by", "frames",
-"records": [...]}`` with the header on the first line and one record per line.
+Each field of the records is declared once, with its kind (a safe name, a relative path, an integer, a ``(4, 4)``
+matrix, one row per box, a table of sub-records, ...: the ``_Kind`` classes below). Everything else follows from
+these declarations: the checks of ``__post_init__``, the JSON form of a record (``to_dict`` / ``from_dict``) and the
+columns of the index file.
+
+An index file (format ``occkit-index/2``; docs/data.md lists every array) is a numpy ``.npz`` holding, per field, one
+array over all records: matrices stacked, box fields concatenated with per-record offsets, the sweeps and cameras as
+tables of their own with offsets, and every string as an int32 code into one UTF-8 string table; the header is a JSON
+string inside. :func:`load_index` checks every column when it reads a file and returns :class:`FrameRecords`, a
+sequence that builds each record when it is first used.
 
 Names from the tables become file paths (``gts/<scene>/<token>/labels.npz``, ``<out>/<token>.npz``): sample tokens,
 scene names and scene tokens must be safe names and every file path a relative path that stays under the root
-(:mod:`occkit.data.names`), checked when an index is built and again when one is read.
+(:mod:`occkit.data.names`), checked when an index is built, saved and read.
 """
 
 from __future__ import annotations
 
 import abc
+import functools
 import hashlib
+import io
+import itertools
 import json
 import math
+import operator
 import os
+import shlex
+import zipfile
+import zlib
 from collections import defaultdict
-from collections.abc import Callable, Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, fields
+from dataclasses import field as dataclass_field
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar, TypeVar
 
 import numpy as np
 
@@ -42,6 +58,14 @@ from occkit import __version__
 from occkit.classes import detection_name
 from occkit.data.names import is_safe_name, is_safe_relative_path, safe_name, safe_relative_path
 from occkit.data.tables import NuScenesTables, TableError, load_tables
+from occkit.geometry.numpy_se3 import (
+    MIN_QUATERNION_NORM,
+    invert_transform,
+    make_transform,
+    quaternion_to_matrix,
+    rotation_yaw,
+    transform_points,
+)
 from occkit.nuscenes import CAMERA_ORDER, LIDAR_CHANNEL, TABLE_NAMES
 
 __all__ = [
@@ -51,6 +75,7 @@ __all__ = [
     "SweepRecord",
     "CameraRecord",
     "FrameRecord",
+    "FrameRecords",
     "build_index",
     "index_tables",
     "save_index",
@@ -61,7 +86,7 @@ __all__ = [
 ]
 
 #: Value of the ``format`` key of index files.
-INDEX_FORMAT = "occkit-index/1"
+INDEX_FORMAT = "occkit-index/2"
 
 #: nuscenes-devkit's ``box_velocity`` default: neighbours further apart than this (s) give no velocity; twice
 #: this for a centred difference.
@@ -75,13 +100,391 @@ class IndexFormatError(ValueError):
     """An index file or record dict is malformed; the message names the file, record and field."""
 
 
-# ----------------------------------------------------------------------------------------------------- records
-class _Record(abc.ABC):
-    """Equality through :meth:`to_dict`: the dataclass-generated one cannot compare numpy arrays."""
+# ----------------------------------------------------------------------------------------------------- field kinds
+class _Kind(abc.ABC):
+    """What one record field holds. Declared once per field (:func:`_declare`), it gives every use of the field:
+    the value a record keeps (``__post_init__``), the JSON form (``to_dict`` / ``from_dict``), and the field's
+    columns in an index file (written by :func:`_pack`, checked by :func:`_check`, read by :func:`_reader`)."""
+
+    per_box: bool = False
+    """One value per box: the field's length is the record's box count, and its columns share ``boxes.offsets``."""
+
+    def normalise(self, value: Any, where: str) -> Any:
+        """The value a record keeps; ValueError naming ``where`` if it cannot be one."""
+        return value
 
     @abc.abstractmethod
+    def from_json(self, value: Any, where: str) -> Any:
+        """The value of a JSON value; :class:`IndexFormatError` naming ``where`` on bad input."""
+
+    def to_json(self, value: Any) -> Any:
+        return value
+
+    @abc.abstractmethod
+    def pack(self, values: list, column: str, out: _Writer) -> None:
+        """Add the columns named ``column`` (and ``column.*``) of ``values``, one per row, to ``out``."""
+
+    @abc.abstractmethod
+    def check(self, file: _File, column: str, name: str, rows: _Rows) -> None:
+        """Check the field's columns in ``file``; :class:`IndexFormatError` naming the record and field ``name``."""
+
+    @abc.abstractmethod
+    def reader(self, file: _File, column: str) -> Callable[..., Any]:
+        """``row -> value`` over checked columns; for box fields ``(start, stop) -> value`` of a record's boxes."""
+
+
+def _declare(kind: _Kind) -> Any:
+    """A dataclass field of ``kind``."""
+    return dataclass_field(metadata={"kind": kind})
+
+
+@functools.cache
+def _declared(cls: type) -> tuple[tuple[str, _Kind], ...]:
+    """``(name, kind)`` of each field of a record class, in declaration order."""
+    return tuple((f.name, f.metadata["kind"]) for f in fields(cls))
+
+
+@functools.cache
+def _normalised(cls: type) -> tuple[tuple[str, Callable[[Any, str], Any], str], ...]:
+    """``(name, normalise, where)`` of the fields of a record class whose kind changes values: ``__post_init__`` runs
+    for every record built, and most fields are kept as given."""
+    return tuple(
+        (name, kind.normalise, f"{cls.__name__}.{name}")
+        for name, kind in _declared(cls)
+        if type(kind).normalise is not _Kind.normalise
+    )
+
+
+@functools.cache
+def _box_fields(cls: type) -> tuple[str, ...]:
+    return tuple(name for name, kind in _declared(cls) if kind.per_box)
+
+
+class _Text(_Kind):
+    """A string, or ``None`` where ``nullable``. Column: int32 codes into the file's string table, -1 for None."""
+
+    def __init__(self, nullable: bool = False) -> None:
+        self.nullable = nullable
+
+    def ok(self, text: Any) -> bool:
+        """Whether the field may hold ``text`` (any string here; names and paths are checked further)."""
+        return isinstance(text, str)
+
+    def refuse(self, text: Any, where: str) -> None:
+        """Raise :class:`IndexFormatError` naming ``where`` for a value that is not :meth:`ok`."""
+        _string(text, where)
+
+    def from_json(self, value: Any, where: str) -> Any:
+        if not (self.ok(value) or (value is None and self.nullable)):
+            self.refuse(value, where)
+        return value
+
+    def pack(self, values: list, column: str, out: _Writer) -> None:
+        out.add(column, out.codes(values))
+
+    def check(self, file: _File, column: str, name: str, rows: _Rows) -> None:
+        codes = file.array(column, np.int32, (), rows.count)
+        known = (codes >= (-1 if self.nullable else 0)) & (codes < len(file.strings))
+        if not known.all():
+            row = _first_false(known)
+            got = "null" if codes[row] == -1 else f"string {codes[row]} of a table of {len(file.strings)}"
+            raise IndexFormatError(f"{rows.at(row, name)}: expected a string, got {got}")
+        # Each distinct string once; a bad one is reported at the first row that uses it.
+        unique, first = np.unique(codes, return_index=True)
+        for code, row in zip(unique.tolist(), first.tolist(), strict=True):
+            if code >= 0 and not self.ok(file.strings[code]):
+                self.refuse(file.strings[code], rows.at(row, name))
+
+    def reader(self, file: _File, column: str) -> Callable[[int], Any]:
+        texts, codes = file.texts, file.arrays[column].tolist()
+        return lambda row: texts[codes[row]]
+
+
+class _Texts(_Text):
+    """A tuple of strings (or of ``None`` too where ``nullable``), one per box. Column as :class:`_Text`, over the
+    boxes."""
+
+    per_box = True
+
+    def normalise(self, value: Any, where: str) -> tuple:
+        return tuple(value)
+
+    def from_json(self, value: Any, where: str) -> tuple:
+        types = (str, type(None)) if self.nullable else (str,)
+        return tuple(_typed_list(value, types, "strings or nulls" if self.nullable else "strings", where))
+
+    def to_json(self, value: tuple) -> list:
+        return list(value)
+
+    def pack(self, values: list, column: str, out: _Writer) -> None:
+        out.add(column, out.codes(list(itertools.chain.from_iterable(values))))
+
+    def reader(self, file: _File, column: str) -> Callable[[int, int], tuple]:
+        texts, codes = file.texts, file.arrays[column]
+        return lambda start, stop: tuple(map(texts.__getitem__, codes[start:stop].tolist()))
+
+
+class _Name(_Text):
+    """A sample token or scene name / token (:func:`~occkit.data.names.safe_name`); ``""`` too where ``empty``."""
+
+    def __init__(self, empty: bool = False) -> None:
+        super().__init__()
+        self.empty = empty
+
+    def ok(self, text: Any) -> bool:
+        return (self.empty and text == "") or is_safe_name(text)
+
+    def refuse(self, text: Any, where: str) -> None:
+        safe_name(_string(text, where), where, IndexFormatError)
+
+
+class _Path(_Text):
+    """A file path relative to the dataset root (:func:`~occkit.data.names.safe_relative_path`); None too where
+    ``optional``."""
+
+    def __init__(self, optional: bool = False) -> None:
+        super().__init__(nullable=optional)
+
+    def ok(self, text: Any) -> bool:
+        return is_safe_relative_path(text)
+
+    def refuse(self, text: Any, where: str) -> None:
+        safe_relative_path(_string(text, where), where, IndexFormatError)
+
+
+class _Integer(_Kind):
+    """An integer; column int64."""
+
+    def from_json(self, value: Any, where: str) -> int:
+        return _integer(value, where)
+
+    def pack(self, values: list, column: str, out: _Writer) -> None:
+        out.add(column, _as_array(values, np.int64))
+
+    def check(self, file: _File, column: str, name: str, rows: _Rows) -> None:
+        file.array(column, np.int64, (), rows.count)
+
+    def reader(self, file: _File, column: str) -> Callable[[int], int]:
+        return file.arrays[column].tolist().__getitem__
+
+
+class _Number(_Kind):
+    """A finite number; column float64."""
+
+    def from_json(self, value: Any, where: str) -> float:
+        return _number(value, where)
+
+    def pack(self, values: list, column: str, out: _Writer) -> None:
+        out.add(column, _as_array(values, np.float64), deflate=False)
+
+    def check(self, file: _File, column: str, name: str, rows: _Rows) -> None:
+        values = file.array(column, np.float64, (), rows.count)
+        finite = np.isfinite(values)
+        if not finite.all():
+            row = _first_false(finite)
+            raise IndexFormatError(f"{rows.at(row, name)}: expected a finite number, got {float(values[row])}")
+
+    def reader(self, file: _File, column: str) -> Callable[[int], float]:
+        return file.arrays[column].tolist().__getitem__
+
+
+class _Array(_Kind):
+    """A read-only array of ``dtype`` and ``shape``; a leading -1 in ``shape``: one row per box. Column: the
+    records' arrays stacked (box fields concatenated), ``(rows, *shape)`` (``(boxes, *shape[1:])``), deflated in the
+    file unless it holds floats that do not ``repeat`` (measurements do not compress; calibrations, the same few
+    matrices over and over, do)."""
+
+    def __init__(self, dtype: type, shape: tuple[int, ...], repeats: bool = False) -> None:
+        self.dtype, self.shape, self.repeats = np.dtype(dtype), shape, repeats
+        self.per_box = shape[0] == -1
+        self.tail = shape[1:] if self.per_box else shape
+
+    def normalise(self, value: Any, where: str) -> np.ndarray:
+        return _frozen(value, self.shape, self.dtype, where)
+
+    def to_json(self, value: np.ndarray) -> Any:
+        return value.tolist()
+
+    def pack(self, values: list, column: str, out: _Writer) -> None:
+        if not values:
+            array = np.zeros((0, *self.tail), self.dtype)
+        else:
+            array = np.concatenate(values) if self.per_box else np.stack(values)
+        out.add(column, array, deflate=self.repeats or self.dtype.kind != "f")
+
+    def check(self, file: _File, column: str, name: str, rows: _Rows) -> None:
+        self.check_values(file.array(column, self.dtype, self.tail, rows.count), name, rows)
+
+    def check_values(self, values: np.ndarray, name: str, rows: _Rows) -> None:
+        """Checks of the values beyond dtype and shape."""
+
+    def reader(self, file: _File, column: str) -> Callable[..., np.ndarray]:
+        values = file.arrays[column]  # read-only: records share views of it
+        return (lambda start, stop: values[start:stop]) if self.per_box else values.__getitem__
+
+
+class _Matrix(_Array):
+    """A float64 ``(rows, columns)`` matrix of finite numbers; ``rows`` None: one row per box."""
+
+    def __init__(self, rows: int | None, columns: int, repeats: bool = False) -> None:
+        super().__init__(np.float64, (-1 if rows is None else rows, columns), repeats)
+        self.rows, self.columns = rows, columns
+
+    def from_json(self, value: Any, where: str) -> np.ndarray:
+        return _matrix(value, self.rows, self.columns, where)
+
+    def check_values(self, values: np.ndarray, name: str, rows: _Rows) -> None:
+        lines = values.reshape(-1, self.columns)
+        finite = np.isfinite(lines).all(axis=1)
+        if not finite.all():
+            line = _first_false(finite)
+            # A box is one line; otherwise line `line` is row `line % rows` of the matrix of row `line // rows`.
+            if self.rows is None:
+                where = rows.at(line, name)
+            else:
+                where = f"{rows.at(line // self.rows, name)}[{line % self.rows}]"
+            message = f"expected a list of {self.columns} finite numbers, got {_show(lines[line].tolist())}"
+            raise IndexFormatError(f"{where}: {message}")
+
+
+class _Flags(_Array):
+    """One bool per box."""
+
+    def __init__(self) -> None:
+        super().__init__(np.bool_, (-1,))
+
+    def from_json(self, value: Any, where: str) -> list:
+        return _typed_list(value, (bool,), "booleans", where)
+
+
+class _Counts(_Array):
+    """One count (int64, >= 0) per box."""
+
+    def __init__(self) -> None:
+        super().__init__(np.int64, (-1,))
+
+    def from_json(self, value: Any, where: str) -> list:
+        return _counts(value, where)
+
+    def check_values(self, values: np.ndarray, name: str, rows: _Rows) -> None:
+        counts = values >= 0
+        if not counts.all():
+            row = _first_false(counts)
+            raise IndexFormatError(f"{rows.at(row, name)}: expected a count (0 <= n < 2**63), got {values[row]}")
+
+
+class _Records(_Kind):
+    """A tuple of sub-records of ``cls`` (the sweeps). Columns: ``cls``'s own, ``column.<field>``, over the
+    sub-records of all records in order, and ``column.offsets``: record ``i`` has rows ``offsets[i]:offsets[i+1]``."""
+
+    def __init__(self, cls: type[_Record]) -> None:
+        self.cls = cls
+
+    def normalise(self, value: Any, where: str) -> tuple:
+        return tuple(value)
+
+    def from_json(self, value: Any, where: str) -> tuple:
+        return tuple(self.cls.from_dict(item, f"{where}[{i}]") for i, item in enumerate(_list(value, where)))
+
+    def to_json(self, value: tuple) -> list:
+        return [record.to_dict() for record in value]
+
+    def pack(self, values: list, column: str, out: _Writer) -> None:
+        out.offsets(column, values)
+        _pack(self.cls, [record for value in values for record in value], f"{column}.", out)
+
+    def check(self, file: _File, column: str, name: str, rows: _Rows) -> None:
+        offsets = file.offsets(column, rows.count)
+        _check(self.cls, file, f"{column}.", rows.nested(offsets, lambda i, k, f: f"{rows.at(i, name)}[{k}].{f}"))
+
+    def reader(self, file: _File, column: str) -> Callable[[int], tuple]:
+        offsets = file.arrays[f"{column}.offsets"].tolist()
+        build = _reader(self.cls, file, f"{column}.")
+        return lambda row: tuple(map(build, range(offsets[row], offsets[row + 1])))
+
+
+class _Channels(_Records):
+    """A dict channel -> sub-record of ``cls`` (the cameras), in the record's order. Columns: as :class:`_Records`,
+    and ``column.channel``, the channels as string codes."""
+
+    normalise = _Kind.normalise  # the dict is kept as given
+
+    def from_json(self, value: Any, where: str) -> dict:
+        if not isinstance(value, dict):
+            raise IndexFormatError(f"{where}: expected an object of channel -> {self.cls.NOUN}, got {_show(value)}")
+        return {channel: self.cls.from_dict(item, f"{where}.{channel}") for channel, item in value.items()}
+
+    def to_json(self, value: dict) -> dict:
+        return {channel: record.to_dict() for channel, record in value.items()}
+
+    def pack(self, values: list, column: str, out: _Writer) -> None:
+        out.offsets(column, values)
+        out.add(f"{column}.channel", out.codes([channel for value in values for channel in value]))
+        _pack(self.cls, [record for value in values for record in value.values()], f"{column}.", out)
+
+    def check(self, file: _File, column: str, name: str, rows: _Rows) -> None:
+        offsets = file.offsets(column, rows.count)
+        places = rows.nested(offsets, lambda i, k, f: f"{rows.at(i, name)}[{k}].{f}")
+        _Text().check(file, f"{column}.channel", "channel", places)
+        channels = file.arrays[f"{column}.channel"]
+        # A dict holds each channel once: a repeated one in a record would drop a camera.
+        owner = np.repeat(np.arange(rows.count), np.diff(offsets))
+        order = np.lexsort((channels, owner))
+        repeated = (np.diff(owner[order]) == 0) & (np.diff(channels[order]) == 0)
+        if repeated.any():
+            row = int(order[1:][repeated][0])
+            raise IndexFormatError(f"{places.at(row, 'channel')}: {file.strings[channels[row]]!r} is repeated")
+        named = rows.nested(offsets, lambda i, k, f: f"{rows.at(i, name)}.{file.strings[channels[offsets[i] + k]]}.{f}")
+        _check(self.cls, file, f"{column}.", named)
+
+    def reader(self, file: _File, column: str) -> Callable[[int], dict]:
+        offsets = file.arrays[f"{column}.offsets"].tolist()
+        channels = [file.strings[code] for code in file.arrays[f"{column}.channel"].tolist()]
+        build = _reader(self.cls, file, f"{column}.")
+        return lambda row: {channels[j]: build(j) for j in range(offsets[row], offsets[row + 1])}
+
+
+# ----------------------------------------------------------------------------------------------------- records
+_R = TypeVar("_R", bound="_Record")
+
+
+class _Record:
+    """Behaviour that follows from the field declarations; equality through :meth:`to_dict` (the
+    dataclass-generated one cannot compare numpy arrays)."""
+
+    NOUN: ClassVar[str]
+    """What a record is called in messages without a place (``from_dict``'s default ``where``)."""
+
+    def __post_init__(self) -> None:
+        for name, normalise, where in _normalised(type(self)):
+            value = getattr(self, name)
+            kept = normalise(value, where)
+            if kept is not value:
+                object.__setattr__(self, name, kept)
+        counts = {name: len(getattr(self, name)) for name in _box_fields(type(self))}
+        if len(set(counts.values())) > 1:
+            raise ValueError(f"{type(self).__name__} box fields must have one length each, got {counts}")
+
     def to_dict(self) -> dict[str, Any]:
-        """The record as JSON-ready nested lists and scalars."""
+        """JSON-ready dict: matrices and boxes as nested lists of floats, sub-records as dicts."""
+        return {name: kind.to_json(getattr(self, name)) for name, kind in _declared(type(self))}
+
+    @classmethod
+    def from_dict(cls: type[_R], data: Any, where: str | None = None) -> _R:
+        """Inverse of :meth:`to_dict`.
+
+        Raises:
+            IndexFormatError: ``data`` is not such a dict; the message names ``where`` (default: :attr:`NOUN`) and
+                the field, e.g. ``index.json: record 12.boxes_ego[3]: expected a list of 9 finite numbers, got
+                [1.0, 'a', ...]``.
+        """
+        where = cls.NOUN if where is None else where
+        data = _fields(cls, data, where)
+        values = {name: kind.from_json(data[name], f"{where}.{name}") for name, kind in _declared(cls)}
+        try:
+            return cls(**values)
+        except ValueError as error:  # box fields of different lengths
+            raise IndexFormatError(f"{where}: {error}") from None
 
     def __eq__(self, other: object) -> bool:
         if type(other) is not type(self):
@@ -91,105 +494,59 @@ class _Record(abc.ABC):
     __hash__ = None  # type: ignore[assignment]
 
 
-def _frozen(record: object, name: str, shape: tuple[int, ...], dtype: type) -> None:
-    """Replace field ``name`` of a frozen dataclass by a read-only array of ``dtype`` and check its shape."""
-    array = np.array(getattr(record, name), dtype=dtype)
+def _frozen(value: Any, shape: tuple[int, ...], dtype: np.dtype, where: str) -> np.ndarray:
+    """``value`` as a read-only array of ``dtype`` of ``shape`` (-1: any length). An array that is read-only and of
+    ``dtype`` already (a column of a loaded index, another record's field) is kept, not copied."""
+    if isinstance(value, np.ndarray) and value.dtype == dtype and not value.flags.writeable:
+        array = value
+    else:
+        array = np.array(value, dtype=dtype)
+        array.setflags(write=False)
     if array.ndim != len(shape) or any(n not in (-1, m) for n, m in zip(shape, array.shape, strict=True)):
         wanted = "(" + ", ".join("N" if n == -1 else str(n) for n in shape) + ")"
-        raise ValueError(f"{type(record).__name__}.{name} must have shape {wanted}, got {array.shape}")
-    array.setflags(write=False)
-    object.__setattr__(record, name, array)
+        raise ValueError(f"{where} must have shape {wanted}, got {array.shape}")
+    return array
 
 
 @dataclass(frozen=True, eq=False)
 class SweepRecord(_Record):
     """One LiDAR sweep before a key frame."""
 
-    path: str
+    NOUN: ClassVar[str] = "sweep"
+
+    path: str = _declare(_Path())
     """Point file, relative to the dataset root."""
-    timestamp: int
+    timestamp: int = _declare(_Integer())
     """Microseconds."""
-    sweep2lidar: np.ndarray
+    sweep2lidar: np.ndarray = _declare(_Matrix(4, 4))
     """``(4, 4)`` float64: points of this sweep's LiDAR frame -> the key frame's LiDAR frame (through both ego
     poses and the global frame)."""
-    time_lag: float
+    time_lag: float = _declare(_Number())
     """Seconds from this sweep to the key frame, ``(key timestamp - timestamp) / 1e6``; >= 0."""
-
-    def __post_init__(self) -> None:
-        _frozen(self, "sweep2lidar", (4, 4), np.float64)
-
-    def to_dict(self) -> dict[str, Any]:
-        return {
-            "path": self.path,
-            "timestamp": self.timestamp,
-            "sweep2lidar": self.sweep2lidar.tolist(),
-            "time_lag": self.time_lag,
-        }
-
-    @classmethod
-    def from_dict(cls, data: Any, where: str = "sweep") -> SweepRecord:
-        """Inverse of :meth:`to_dict`; :class:`IndexFormatError` names ``where`` and the field on bad input."""
-        fields_ = _fields(cls, data, where)
-        return cls(
-            path=_path(fields_["path"], f"{where}.path"),
-            timestamp=_integer(fields_["timestamp"], f"{where}.timestamp"),
-            sweep2lidar=_matrix(fields_["sweep2lidar"], 4, 4, f"{where}.sweep2lidar"),
-            time_lag=_number(fields_["time_lag"], f"{where}.time_lag"),
-        )
 
 
 @dataclass(frozen=True, eq=False)
 class CameraRecord(_Record):
     """The key-frame image of one camera."""
 
-    path: str
+    NOUN: ClassVar[str] = "camera"
+
+    path: str = _declare(_Path())
     """Image file, relative to the dataset root."""
-    timestamp: int
+    timestamp: int = _declare(_Integer())
     """Microseconds; the camera fires a little after the LiDAR key-frame timestamp."""
-    width: int
+    width: int = _declare(_Integer())
     """Image width (pixels)."""
-    height: int
+    height: int = _declare(_Integer())
     """Image height (pixels)."""
-    intrinsics: np.ndarray
+    intrinsics: np.ndarray = _declare(_Matrix(3, 3, repeats=True))
     """``(3, 3)`` float64 pinhole matrix."""
-    cam2ego: np.ndarray
+    cam2ego: np.ndarray = _declare(_Matrix(4, 4, repeats=True))
     """``(4, 4)`` float64 calibration: camera -> ego."""
-    ego2global: np.ndarray
+    ego2global: np.ndarray = _declare(_Matrix(4, 4))
     """``(4, 4)`` float64 ego pose at the camera's own timestamp."""
-    cam2keyego: np.ndarray
+    cam2keyego: np.ndarray = _declare(_Matrix(4, 4))
     """``(4, 4)`` float64 camera -> ego at the key frame: ``inv(key ego2global) @ ego2global @ cam2ego``."""
-
-    def __post_init__(self) -> None:
-        _frozen(self, "intrinsics", (3, 3), np.float64)
-        for name in ("cam2ego", "ego2global", "cam2keyego"):
-            _frozen(self, name, (4, 4), np.float64)
-
-    def to_dict(self) -> dict[str, Any]:
-        return {
-            "path": self.path,
-            "timestamp": self.timestamp,
-            "width": self.width,
-            "height": self.height,
-            "intrinsics": self.intrinsics.tolist(),
-            "cam2ego": self.cam2ego.tolist(),
-            "ego2global": self.ego2global.tolist(),
-            "cam2keyego": self.cam2keyego.tolist(),
-        }
-
-    @classmethod
-    def from_dict(cls, data: Any, where: str = "camera") -> CameraRecord:
-        """Inverse of :meth:`to_dict`; :class:`IndexFormatError` names ``where`` and the field on bad input."""
-        fields_ = _fields(cls, data, where)
-        return cls(
-            path=_path(fields_["path"], f"{where}.path"),
-            timestamp=_integer(fields_["timestamp"], f"{where}.timestamp"),
-            width=_integer(fields_["width"], f"{where}.width"),
-            height=_integer(fields_["height"], f"{where}.height"),
-            intrinsics=_matrix(fields_["intrinsics"], 3, 3, f"{where}.intrinsics"),
-            cam2ego=_matrix(fields_["cam2ego"], 4, 4, f"{where}.cam2ego"),
-            ego2global=_matrix(fields_["ego2global"], 4, 4, f"{where}.ego2global"),
-            cam2keyego=_matrix(fields_["cam2keyego"], 4, 4, f"{where}.cam2keyego"),
-        )
 
 
 @dataclass(frozen=True, eq=False)
@@ -202,63 +559,51 @@ class FrameRecord(_Record):
     +x), and the velocity (m/s) in the same frame.
     """
 
-    token: str
+    NOUN: ClassVar[str] = "record"
+
+    token: str = _declare(_Name())
     """Sample token (a safe name: :mod:`occkit.data.names`)."""
-    scene: str
+    scene: str = _declare(_Name(empty=True))
     """Scene name, e.g. ``scene-0061`` (a safe name; ``""`` for frames of info files without one)."""
-    scene_token: str
+    scene_token: str = _declare(_Name(empty=True))
     """Scene token (a safe name or ``""``)."""
-    timestamp: int
+    timestamp: int = _declare(_Integer())
     """Sample timestamp, microseconds (the LIDAR_TOP key-frame timestamp)."""
-    prev: str
+    prev: str = _declare(_Name(empty=True))
     """Previous sample token, ``""`` at the start of the scene."""
-    next: str
+    next: str = _declare(_Name(empty=True))
     """Next sample token, ``""`` at the end of the scene."""
-    index_in_scene: int
+    index_in_scene: int = _declare(_Integer())
     """Position of the sample in its scene, from 0."""
-    ego2global: np.ndarray
+    ego2global: np.ndarray = _declare(_Matrix(4, 4))
     """``(4, 4)`` float64 ego pose at the LiDAR key-frame timestamp."""
-    lidar_path: str
+    lidar_path: str = _declare(_Path())
     """Key-frame LiDAR point file, relative to the dataset root."""
-    lidar2ego: np.ndarray
+    lidar2ego: np.ndarray = _declare(_Matrix(4, 4, repeats=True))
     """``(4, 4)`` float64 LIDAR_TOP calibration."""
-    sweeps: tuple[SweepRecord, ...]
+    sweeps: tuple[SweepRecord, ...] = _declare(_Records(SweepRecord))
     """Earlier sweeps, newest first, within the scene; at most the ``max_sweeps`` the index was built with."""
-    cameras: dict[str, CameraRecord]
+    cameras: dict[str, CameraRecord] = _declare(_Channels(CameraRecord))
     """Channel -> key-frame image, in :data:`CAMERA_ORDER`. Treat as read-only."""
-    boxes_ego: np.ndarray
+    boxes_ego: np.ndarray = _declare(_Matrix(None, 9))
     """``(N, 9)`` float64 boxes in the key frame's ego frame."""
-    boxes_lidar: np.ndarray
+    boxes_lidar: np.ndarray = _declare(_Matrix(None, 9))
     """``(N, 9)`` float64 boxes in the key frame's LiDAR frame."""
-    velocity_valid: np.ndarray
+    velocity_valid: np.ndarray = _declare(_Flags())
     """``(N,)`` bool: False where nuscenes-devkit's velocity is NaN (no neighbour annotation within reach); the
     velocity columns hold 0 there."""
-    box_categories: tuple[str, ...]
+    box_categories: tuple[str, ...] = _declare(_Texts())
     """nuScenes category names, e.g. ``vehicle.car``."""
-    box_detection_names: tuple[str | None, ...]
+    box_detection_names: tuple[str | None, ...] = _declare(_Texts(nullable=True))
     """Detection class (:data:`occkit.classes.DETECTION_CLASSES`) or None for categories that are not targets."""
-    box_instances: tuple[str, ...]
+    box_instances: tuple[str, ...] = _declare(_Texts())
     """Instance tokens (the same object across samples)."""
-    box_num_lidar_pts: np.ndarray
+    box_num_lidar_pts: np.ndarray = _declare(_Counts())
     """``(N,)`` int64 LiDAR points inside each box."""
-    box_visibility: tuple[str, ...]
+    box_visibility: tuple[str, ...] = _declare(_Texts())
     """nuScenes visibility tokens, ``"1"`` (0-40% visible) to ``"4"`` (80-100%)."""
-    occ_path: str | None
+    occ_path: str | None = _declare(_Path(optional=True))
     """``gts/<scene>/<token>/labels.npz`` (Occ3D labels) if that file exists under the root, else None."""
-
-    def __post_init__(self) -> None:
-        for name in ("ego2global", "lidar2ego"):
-            _frozen(self, name, (4, 4), np.float64)
-        _frozen(self, "boxes_ego", (-1, 9), np.float64)
-        _frozen(self, "boxes_lidar", (-1, 9), np.float64)
-        _frozen(self, "velocity_valid", (-1,), np.bool_)
-        _frozen(self, "box_num_lidar_pts", (-1,), np.int64)
-        object.__setattr__(self, "sweeps", tuple(self.sweeps))
-        for name in ("box_categories", "box_detection_names", "box_instances", "box_visibility"):
-            object.__setattr__(self, name, tuple(getattr(self, name)))
-        counts = {name: len(getattr(self, name)) for name in _BOX_FIELDS}
-        if len(set(counts.values())) > 1:
-            raise ValueError(f"FrameRecord box fields must have one length each, got {counts}")
 
     @property
     def num_boxes(self) -> int:
@@ -272,92 +617,8 @@ class FrameRecord(_Record):
             f"occ_path={self.occ_path!r})"
         )
 
-    def to_dict(self) -> dict[str, Any]:
-        """JSON-ready dict: matrices and boxes as nested lists of floats, sub-records as dicts."""
-        return {
-            "token": self.token,
-            "scene": self.scene,
-            "scene_token": self.scene_token,
-            "timestamp": self.timestamp,
-            "prev": self.prev,
-            "next": self.next,
-            "index_in_scene": self.index_in_scene,
-            "ego2global": self.ego2global.tolist(),
-            "lidar_path": self.lidar_path,
-            "lidar2ego": self.lidar2ego.tolist(),
-            "sweeps": [sweep.to_dict() for sweep in self.sweeps],
-            "cameras": {channel: camera.to_dict() for channel, camera in self.cameras.items()},
-            "boxes_ego": self.boxes_ego.tolist(),
-            "boxes_lidar": self.boxes_lidar.tolist(),
-            "velocity_valid": self.velocity_valid.tolist(),
-            "box_categories": list(self.box_categories),
-            "box_detection_names": list(self.box_detection_names),
-            "box_instances": list(self.box_instances),
-            "box_num_lidar_pts": self.box_num_lidar_pts.tolist(),
-            "box_visibility": list(self.box_visibility),
-            "occ_path": self.occ_path,
-        }
 
-    @classmethod
-    def from_dict(cls, data: Any, where: str = "record") -> FrameRecord:
-        """Inverse of :meth:`to_dict`.
-
-        Raises:
-            IndexFormatError: ``data`` is not such a dict; the message names ``where`` and the field, e.g.
-                ``index.json: record 12.boxes_ego[3]: expected a list of 9 numbers, got [1.0, 'a', ...]``.
-        """
-        f = _fields(cls, data, where)
-        sweeps = _list(f["sweeps"], f"{where}.sweeps")
-        cameras = f["cameras"]
-        if not isinstance(cameras, dict):
-            raise IndexFormatError(f"{where}.cameras: expected an object of channel -> camera, got {_show(cameras)}")
-        values = {
-            "token": _name(f["token"], f"{where}.token"),
-            "scene": _name(f["scene"], f"{where}.scene", empty=True),
-            "scene_token": _name(f["scene_token"], f"{where}.scene_token", empty=True),
-            "timestamp": _integer(f["timestamp"], f"{where}.timestamp"),
-            "prev": _name(f["prev"], f"{where}.prev", empty=True),
-            "next": _name(f["next"], f"{where}.next", empty=True),
-            "index_in_scene": _integer(f["index_in_scene"], f"{where}.index_in_scene"),
-            "ego2global": _matrix(f["ego2global"], 4, 4, f"{where}.ego2global"),
-            "lidar_path": _path(f["lidar_path"], f"{where}.lidar_path"),
-            "lidar2ego": _matrix(f["lidar2ego"], 4, 4, f"{where}.lidar2ego"),
-            "sweeps": tuple(SweepRecord.from_dict(s, f"{where}.sweeps[{i}]") for i, s in enumerate(sweeps)),
-            "cameras": {
-                channel: CameraRecord.from_dict(camera, f"{where}.cameras.{channel}")
-                for channel, camera in cameras.items()
-            },
-            "boxes_ego": _matrix(f["boxes_ego"], None, 9, f"{where}.boxes_ego"),
-            "boxes_lidar": _matrix(f["boxes_lidar"], None, 9, f"{where}.boxes_lidar"),
-            "velocity_valid": _typed_list(f["velocity_valid"], (bool,), "booleans", f"{where}.velocity_valid"),
-            "box_categories": _typed_list(f["box_categories"], (str,), "strings", f"{where}.box_categories"),
-            "box_detection_names": _typed_list(
-                f["box_detection_names"], (str, type(None)), "strings or nulls", f"{where}.box_detection_names"
-            ),
-            "box_instances": _typed_list(f["box_instances"], (str,), "strings", f"{where}.box_instances"),
-            "box_num_lidar_pts": _counts(f["box_num_lidar_pts"], f"{where}.box_num_lidar_pts"),
-            "box_visibility": _typed_list(f["box_visibility"], (str,), "strings", f"{where}.box_visibility"),
-            "occ_path": None if f["occ_path"] is None else _path(f["occ_path"], f"{where}.occ_path"),
-        }
-        try:
-            return cls(**values)
-        except ValueError as error:  # box fields of different lengths
-            raise IndexFormatError(f"{where}: {error}") from None
-
-
-_BOX_FIELDS = (
-    "boxes_ego",
-    "boxes_lidar",
-    "velocity_valid",
-    "box_categories",
-    "box_detection_names",
-    "box_instances",
-    "box_num_lidar_pts",
-    "box_visibility",
-)
-
-
-# ----------------------------------------------------------------------------------------------------- validation
+# ----------------------------------------------------------------------------------------------------- JSON checks
 def _show(value: Any, limit: int = 60) -> str:
     text = repr(value)
     return text if len(text) <= limit else text[: limit - 4] + " ..."
@@ -367,7 +628,7 @@ def _fields(cls: type, data: Any, where: str) -> dict[str, Any]:
     """``data`` as a dict with exactly the dataclass's fields."""
     if not isinstance(data, dict):
         raise IndexFormatError(f"{where}: expected an object of {cls.__name__} fields, got {_show(data)}")
-    names = [f.name for f in fields(cls)]
+    names = [name for name, _ in _declared(cls)]
     missing = [name for name in names if name not in data]
     if missing:
         raise IndexFormatError(f"{where}: missing {', '.join(missing)}")
@@ -381,18 +642,6 @@ def _string(value: Any, where: str) -> str:
     if not isinstance(value, str):
         raise IndexFormatError(f"{where}: expected a string, got {_show(value)}")
     return value
-
-
-def _name(value: Any, where: str, empty: bool = False) -> str:
-    """A sample token or scene name / token (:func:`~occkit.data.names.safe_name`); ``""`` too where ``empty``."""
-    if empty and value == "":
-        return value
-    return safe_name(_string(value, where), where, IndexFormatError)
-
-
-def _path(value: Any, where: str) -> str:
-    """A file path relative to the dataset root (:func:`~occkit.data.names.safe_relative_path`)."""
-    return safe_relative_path(_string(value, where), where, IndexFormatError)
 
 
 def _integer(value: Any, where: str) -> int:
@@ -440,7 +689,7 @@ def _matrix(value: Any, rows: int | None, columns: int, where: str) -> np.ndarra
         shape = f"{rows} lists" if rows is not None else "a list of lists"
         raise IndexFormatError(f"{where}: expected {shape} of {columns} numbers, got {_show(value)}")
     for i, row in enumerate(value):
-        # Files written by save_index hold floats only: the first test is the fast path of large indexes.
+        # Dicts from to_dict hold floats only: the first test is the fast path.
         if not (
             isinstance(row, list)
             and len(row) == columns
@@ -453,65 +702,6 @@ def _matrix(value: Any, rows: int | None, columns: int, where: str) -> np.ndarra
         i = int(np.argmin(finite))
         raise IndexFormatError(f"{where}[{i}]: expected a list of {columns} finite numbers, got {_show(value[i])}")
     return array
-
-
-# ----------------------------------------------------------------------------------------------------- geometry
-#: Quaternions with a smaller norm (or a non-finite one) are no rotation: an error, not a NaN matrix. Others are
-#: normalised, as nuscenes-devkit (pyquaternion) does.
-MIN_QUATERNION_NORM = 1e-6
-
-
-def quaternions_to_rotations(quaternions: np.ndarray) -> np.ndarray:
-    """``(M, 3, 3)`` rotation matrices of ``(M, 4)`` (w, x, y, z) quaternions, normalised first (as
-    :func:`occkit.geometry.se3.quaternion_to_matrix`, in numpy: the index needs no torch).
-
-    Raises:
-        ValueError: a quaternion's norm is below :data:`MIN_QUATERNION_NORM` or not finite; the message gives its row.
-    """
-    norms = np.linalg.norm(quaternions, axis=-1, keepdims=True)
-    bad = ~((norms[..., 0] >= MIN_QUATERNION_NORM) & np.isfinite(norms[..., 0]))
-    if bad.any():
-        row = int(np.flatnonzero(bad.reshape(-1))[0])
-        raise ValueError(
-            f"quaternion {row} {quaternions.reshape(-1, 4)[row].tolist()} is no rotation (norm "
-            f"{float(norms.reshape(-1)[row]):.3g}; expected (w, x, y, z) of norm 1)"
-        )
-    q = quaternions / norms
-    w, x, y, z = q.T
-    return np.stack(
-        (
-            1 - 2 * (y * y + z * z),
-            2 * (x * y - w * z),
-            2 * (x * z + w * y),
-            2 * (x * y + w * z),
-            1 - 2 * (x * x + z * z),
-            2 * (y * z - w * x),
-            2 * (x * z - w * y),
-            2 * (y * z + w * x),
-            1 - 2 * (x * x + y * y),
-        ),
-        axis=-1,
-    ).reshape(-1, 3, 3)
-
-
-def invert_rigid(transform: np.ndarray) -> np.ndarray:
-    """Inverse of rigid ``(..., 4, 4)`` transforms."""
-    inverse = np.zeros_like(transform)
-    rotation_t = np.swapaxes(transform[..., :3, :3], -1, -2)
-    inverse[..., :3, :3] = rotation_t
-    inverse[..., :3, 3] = -(rotation_t @ transform[..., :3, 3:])[..., 0]
-    inverse[..., 3, 3] = 1.0
-    return inverse
-
-
-def rotation_yaw(rotation: np.ndarray) -> np.ndarray:
-    """Yaw of ``(N, 3, 3)`` rotations as pyquaternion's ``yaw_pitch_roll[0]`` (``R = R_x R_y R_z(yaw)``).
-
-    nuscenes-devkit and mmdetection3d's info files take a box's yaw this way. For a rotation about z alone it is the
-    heading of the box's x axis, ``atan2(R[1, 0], R[0, 0])``; with the ego's pitch and roll folded in, the two
-    differ by about pitch * roll (1e-4 rad).
-    """
-    return np.arctan2(-rotation[:, 0, 1], rotation[:, 0, 0])
 
 
 # ----------------------------------------------------------------------------------------------------- building
@@ -654,7 +844,7 @@ class _IndexBuilder:
         """``(M, 3, 3)`` rotations of the records' ``rotation`` quaternions (w, x, y, z)."""
         quaternions = self._vectors(table, records, "rotation", 4)
         try:
-            return quaternions_to_rotations(quaternions)
+            return quaternion_to_matrix(quaternions)
         except ValueError:  # a norm below MIN_QUATERNION_NORM (the values are finite)
             norms = np.linalg.norm(quaternions, axis=1)
             i = int(np.argmax(norms < MIN_QUATERNION_NORM))
@@ -665,11 +855,7 @@ class _IndexBuilder:
 
     def _transforms(self, table: str, records: Sequence[Mapping]) -> np.ndarray:
         """``(M, 4, 4)`` float64 from records with ``translation`` (3) and ``rotation`` (w, x, y, z)."""
-        matrices = np.zeros((len(records), 4, 4))
-        matrices[:, :3, :3] = self._rotations(table, records)
-        matrices[:, :3, 3] = self._vectors(table, records, "translation", 3)
-        matrices[:, 3, 3] = 1.0
-        return matrices
+        return make_transform(self._rotations(table, records), self._vectors(table, records, "translation", 3))
 
     # ------------------------------------------------------------------------------------------- lookups
     def _sensor(self, sd: dict) -> dict:
@@ -777,9 +963,9 @@ class _IndexBuilder:
         # All ego poses of the frame in one batch: key LiDAR, sweeps, cameras.
         poses = self._transforms("ego_pose", [self._pose(sd) for sd in data])
         ego2global, sweep_poses, camera_poses = poses[0], poses[1 : 1 + len(sweeps)], poses[1 + len(sweeps) :]
-        global2ego = invert_rigid(ego2global)
+        global2ego = invert_transform(ego2global)
         lidar2ego = self._calibration(lidar)
-        ego2lidar = invert_rigid(lidar2ego)
+        ego2lidar = invert_transform(lidar2ego)
         global2lidar = ego2lidar @ global2ego
         sweep_records = tuple(
             SweepRecord(
@@ -872,7 +1058,7 @@ class _IndexBuilder:
             boxes.append(
                 np.concatenate(
                     (
-                        centres @ rotation.T + transform[:3, 3],
+                        transform_points(transform, centres),
                         lengths_widths_heights,
                         rotation_yaw(rotation @ rotations)[:, None],
                         (velocities @ rotation.T)[:, :2],  # rotated, not translated
@@ -906,102 +1092,368 @@ class _IndexBuilder:
         return velocities, valid
 
 
+# ----------------------------------------------------------------------------------------------------- columns
+@dataclass(frozen=True)
+class _Rows:
+    """The rows of one table of an index file (frames, sweeps, cameras, boxes) and where each is, for messages."""
+
+    count: int
+    at: Callable[[int, str], str]
+    """``(row, field) -> place``, e.g. ``index.npz: record 3.sweeps[2].path``."""
+
+    def nested(self, offsets: np.ndarray, place: Callable[[int, int, str], str]) -> _Rows:
+        """The rows of a child table, of which ``offsets[i]:offsets[i + 1]`` belong to row ``i``; ``place(i, k,
+        field)`` names the field of the ``k``-th of them."""
+
+        def at(row: int, field: str) -> str:
+            parent = int(np.searchsorted(offsets, row, side="right")) - 1
+            return place(parent, row - int(offsets[parent]), field)
+
+        return _Rows(int(offsets[-1]), at)
+
+
+class _Writer:
+    """The columns of records being saved, and the strings they refer to (each distinct one once)."""
+
+    def __init__(self) -> None:
+        self.arrays: dict[str, np.ndarray] = {}
+        self.deflated: set[str] = set()
+        self.strings: dict[Any, int] = {}
+
+    def add(self, name: str, array: np.ndarray, deflate: bool = True) -> None:
+        """Array ``name`` of the file, stored deflated or as it is."""
+        self.arrays[name] = array
+        if deflate:
+            self.deflated.add(name)
+
+    def codes(self, values: list) -> np.ndarray:
+        """int32 codes of ``values`` in the string table, -1 for None. Values that are no strings are kept too: the
+        check of the columns names them."""
+        table = self.strings
+        for value in dict.fromkeys(values):  # each distinct value once, in order: a million box strings are few
+            if value is not None and value not in table:
+                table[value] = len(table)
+        return np.fromiter(map(table.get, values, itertools.repeat(-1)), dtype=np.int32, count=len(values))
+
+    def offsets(self, name: str, values: list) -> None:
+        """``name.offsets``, int64 ``(len(values) + 1,)``: where the items of each value start, and the end."""
+        self.add(f"{name}.offsets", _offsets([len(v) for v in values]))
+
+
+def _offsets(lengths: list[int]) -> np.ndarray:
+    """int64 ``(len(lengths) + 1,)``: where each of consecutive runs of ``lengths`` items starts, and the end."""
+    return np.concatenate(([0], np.cumsum(lengths, dtype=np.int64)))
+
+
+def _as_array(values: list, dtype: type) -> np.ndarray:
+    """``values`` as an array of their own type, integers as floats where ``dtype`` is float64: a value of another
+    type is refused by the check of the columns, never cast to ``dtype`` (1.5 as an integer would become 1)."""
+    array = np.asarray(values)
+    exact = array.dtype.kind in "iu" and np.dtype(dtype).kind == "f"
+    return array.astype(dtype) if len(values) == 0 or exact else array
+
+
+class _File:
+    """The arrays and decoded strings of an index file, or of records being saved, as the checks and readers use
+    them; ``path`` names it in messages."""
+
+    def __init__(self, path: str, arrays: dict[str, np.ndarray], strings: list) -> None:
+        self.path, self.arrays, self.strings = path, arrays, strings
+        self.texts = [*strings, None]  # code -1 (None) reads the last item
+        self.checked: set[str] = set()
+
+    def array(self, name: str, dtype: type, tail: tuple[int, ...], rows: int) -> np.ndarray:
+        """Array ``name``, which must be of ``dtype`` and shape ``(rows, *tail)``."""
+        if name not in self.arrays:
+            raise IndexFormatError(f"{self.path}: no array {name!r}")
+        self.checked.add(name)
+        array, shape = self.arrays[name], (rows, *tail)
+        if array.dtype != dtype or array.shape != shape:
+            raise IndexFormatError(
+                f"{self.path}: array {name!r} is {array.dtype} {array.shape}, expected {np.dtype(dtype)} {shape}"
+            )
+        return array
+
+    def offsets(self, name: str, parents: int) -> np.ndarray:
+        """``name.offsets`` of a child table of ``parents`` rows."""
+        offsets = self.array(f"{name}.offsets", np.int64, (), parents + 1)
+        if offsets[0] != 0 or (np.diff(offsets) < 0).any():
+            raise IndexFormatError(f"{self.path}: array '{name}.offsets' must start at 0 and never fall")
+        return offsets
+
+
+def _pack(cls: type, records: list, prefix: str, out: _Writer) -> None:
+    """The columns of ``records`` of ``cls``, named ``prefix<field>``."""
+    boxes = _box_fields(cls)
+    if boxes:
+        out.offsets(f"{prefix}boxes", [getattr(record, boxes[0]) for record in records])
+    for name, kind in _declared(cls):
+        kind.pack([getattr(record, name) for record in records], prefix + name, out)
+
+
+def _check(cls: type, file: _File, prefix: str, rows: _Rows) -> None:
+    """Check the columns of ``cls`` named ``prefix<field>``, of ``rows``."""
+    boxes = rows
+    if _box_fields(cls):
+        offsets = file.offsets(f"{prefix}boxes", rows.count)
+        boxes = rows.nested(offsets, lambda i, k, f: f"{rows.at(i, f)}[{k}]")
+    for name, kind in _declared(cls):
+        kind.check(file, prefix + name, name, boxes if kind.per_box else rows)
+
+
+def _reader(cls: type, file: _File, prefix: str) -> Callable[[int], Any]:
+    """``row -> record`` of ``cls`` over the checked columns named ``prefix<field>``."""
+    getters = [(name, kind.reader(file, prefix + name), kind.per_box) for name, kind in _declared(cls)]
+    boxes = file.arrays[f"{prefix}boxes.offsets"].tolist() if _box_fields(cls) else []
+
+    def build(row: int) -> Any:
+        # The values are what __post_init__ would keep (read-only views, tuples), checked column by column already:
+        # running it again per record would take most of the time of reading a large index.
+        record = object.__new__(cls)
+        record.__dict__.update(
+            {name: get(boxes[row], boxes[row + 1]) if per_box else get(row) for name, get, per_box in getters}
+        )
+        return record
+
+    return build
+
+
+def _first_false(flags: np.ndarray) -> int:
+    return int(np.argmin(flags))
+
+
+class FrameRecords(Sequence[FrameRecord]):
+    """The frames of an index file, as :func:`load_index` returns them: a read-only sequence over the file's
+    columns, all checked when the file was read. A record is built when it is first used and then kept (the same
+    object each time). Equal to any sequence of equal records, a list among them."""
+
+    def __init__(self, file: _File, count: int) -> None:
+        self._file = file
+        self._records: list[FrameRecord | None] = [None] * count
+        self._build = _reader(FrameRecord, file, "")
+
+    def __len__(self) -> int:
+        return len(self._records)
+
+    def __getitem__(self, index: Any) -> Any:
+        if isinstance(index, slice):
+            return [self[i] for i in range(*index.indices(len(self)))]
+        record = self._records[index]  # IndexError and TypeError as a list's
+        if record is None:
+            index = operator.index(index) % len(self)
+            record = self._records[index] = self._build(index)
+        return record
+
+    def __iter__(self) -> Iterator[FrameRecord]:
+        return (self[i] for i in range(len(self)))
+
+    def __eq__(self, other: object) -> bool:
+        if not isinstance(other, Sequence) or isinstance(other, (str, bytes)):
+            return NotImplemented
+        return len(self) == len(other) and all(a == b for a, b in zip(self, other, strict=True))
+
+    __hash__ = None  # type: ignore[assignment]
+
+    def __repr__(self) -> str:
+        return f"FrameRecords({len(self)} frames of {self._file.path})"
+
+    def __getstate__(self) -> dict[str, Any]:
+        # The reader is made of closures, which do not pickle (DataLoader workers that spawn get the columns).
+        return {key: value for key, value in self.__dict__.items() if key != "_build"}
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        self.__dict__.update(state)
+        self._build = _reader(FrameRecord, self._file, "")
+
+
 # ----------------------------------------------------------------------------------------------------- files
 _REQUIRED_META = ("version", "root", "max_sweeps")
 
+#: What reading a damaged ``.npz`` can raise (zipfile and numpy's format reader).
+_READ_ERRORS = (OSError, ValueError, EOFError, KeyError, NotImplementedError, zipfile.BadZipFile, zlib.error)
+
+#: The first bytes of a zip file, and of the JSON index files of occkit before format 2 (header first).
+_ZIP_MAGIC = b"PK\x03\x04"
+_JSON_INDEX_START = b'{"format": "occkit-index/1"'
+
 
 def save_index(records: Sequence[FrameRecord], path: str | Path, meta: Mapping[str, Any]) -> Path:
-    """Write ``records`` as an index JSON file (one record per line), atomically.
+    """Write ``records`` as an index file (``.npz``, see the module doc), atomically.
+
+    Every column is checked as :func:`load_index` checks it before anything is written, so no file holds a value
+    its reader refuses.
 
     Args:
         records: the frames, e.g. from :func:`build_index`.
-        path: the file to write; parent folders are created.
+        path: the file to write (its name is kept as given); parent folders are created.
         meta: at least ``version``, ``root`` and ``max_sweeps`` of the build; other JSON values (``split``, ...)
             are kept too. ``format``, ``created_by`` and ``frames`` are set here.
+
+    Raises:
+        ValueError: ``meta`` lacks a key.
+        IndexFormatError: a record holds a value the format refuses (NaN, an unsafe name or path, ...); the message
+            names the file, the record, its sample and the field.
     """
     path = Path(path)
     missing = [key for key in _REQUIRED_META if key not in meta]
     if missing:
         raise ValueError(f"index meta needs {', '.join(missing)}; got keys {', '.join(meta) or 'none'}")
-    if "records" in meta:
-        raise ValueError("index meta may not have a 'records' key: it holds the frames")
     header = {
         "format": INDEX_FORMAT,
         "created_by": f"occkit {__version__}",
         **{key: value for key, value in meta.items() if key not in ("format", "created_by", "frames")},
         "frames": len(records),
     }
+    out = _Writer()
+    out.add("header", np.array(json.dumps(header)), deflate=False)
+    _pack(FrameRecord, list(records), "", out)
+    strings = list(out.strings)  # in code order
+    place = _Rows(len(records), lambda i, f: f"{path}: record {i} (sample {records[i].token}).{f}")
+    _check(FrameRecord, _File(str(path), out.arrays, strings), "", place)
+    encoded = [text.encode("utf-8", "surrogatepass") for text in strings]  # checked: all are strings
+    out.add("strings", np.frombuffer(b"".join(encoded), dtype=np.uint8))
+    out.add("strings.offsets", _offsets([len(text) for text in encoded]))
     path.parent.mkdir(parents=True, exist_ok=True)
     # A per-process name: ranks of one torchrun job may build the same cache at the same moment.
     partial = path.with_name(f".{path.name}.{os.getpid()}.partial")
-    with open(partial, "w", encoding="utf-8") as stream:
-        # The header first, so `head` shows what a file is; json.dumps per record keeps memory flat.
-        stream.write(json.dumps(header)[:-1] + ', "records": [\n')
-        for i, record in enumerate(records):
-            try:  # strict JSON: a NaN written here would be refused by load_index
-                line = json.dumps(record.to_dict(), allow_nan=False)
-            except ValueError:
-                stream.close()
-                partial.unlink()
-                raise ValueError(f"{path}: record {i} (sample {record.token}) holds NaN or infinite values") from None
-            stream.write(("" if i == 0 else ",\n") + line)
-        stream.write("\n]}\n")
-    os.replace(partial, path)
+    try:
+        with zipfile.ZipFile(partial, "w", allowZip64=True) as archive:
+            # One .npy per array, as np.savez writes; the header first, so that reading it alone stays cheap.
+            for name, array in out.arrays.items():
+                _write_array(archive, name, array, name in out.deflated)
+        os.replace(partial, path)
+    finally:
+        partial.unlink(missing_ok=True)
     return path
 
 
-def load_index(path: str | Path) -> tuple[list[FrameRecord], dict[str, Any]]:
-    """Read an index file written by :func:`save_index`.
+def _write_array(archive: zipfile.ZipFile, name: str, array: np.ndarray, deflate: bool) -> None:
+    """``array`` as member ``name.npy`` of ``archive``, deflated (fast level 1) or stored."""
+    buffer = io.BytesIO()
+    np.lib.format.write_array(buffer, array, allow_pickle=False)
+    # A fixed time stamp: the same records give the same bytes.
+    member = zipfile.ZipInfo(f"{name}.npy", date_time=(1980, 1, 1, 0, 0, 0))
+    member.external_attr = 0o600 << 16
+    method = zipfile.ZIP_DEFLATED if deflate else zipfile.ZIP_STORED
+    archive.writestr(member, buffer.getbuffer(), compress_type=method, compresslevel=1)
+
+
+def load_index(path: str | Path) -> tuple[FrameRecords, dict[str, Any]]:
+    """Read an index file written by :func:`save_index`, checking every column.
 
     Returns:
-        The records and the header (``format``, ``version``, ``root``, ``max_sweeps``, ``created_by``, ``frames``
-        and any other meta saved).
+        The records (a sequence that builds each record when it is first used) and the header (``format``,
+        ``version``, ``root``, ``max_sweeps``, ``created_by``, ``frames`` and any other meta saved).
 
     Raises:
         FileNotFoundError: no such file.
-        IndexFormatError: not JSON, not an occkit index (the ``format`` key), or a malformed record (an unsafe
-            name or path among them, see :mod:`occkit.data.names`); the message names the file, record and field.
+        IndexFormatError: not an occkit index of this format (a JSON index of an older occkit: the message says how
+            to rebuild it), a damaged file, or a malformed column (an unsafe name or path among them, see
+            :mod:`occkit.data.names`); the message names the file and, for a value, the record and field.
     """
     path = Path(path)
-    try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise FileNotFoundError(f"index file {path} does not exist") from None
-    except (json.JSONDecodeError, UnicodeDecodeError) as error:
-        raise IndexFormatError(f"{path}: not valid JSON ({error})") from None
-    found = data.get("format") if isinstance(data, dict) else None
-    if found != INDEX_FORMAT:
-        raise IndexFormatError(f"{path}: not an occkit index (format {found!r}, expected {INDEX_FORMAT!r})")
-    items = data.pop("records", None)
-    if not isinstance(items, list):
-        raise IndexFormatError(f"{path}: 'records' must be a list, got {_show(items)}")
-    records = [FrameRecord.from_dict(item, f"{path}: record {i}") for i, item in enumerate(items)]
-    return records, data
-
-
-#: The end of an index file's first line (see :func:`save_index`).
-_HEADER_END = ', "records": ['
+    with _open_index(path) as npz:
+        header = _header(path, npz)
+        try:
+            arrays = {name: npz[name] for name in npz.files if name != "header"}
+        except _READ_ERRORS as error:
+            raise IndexFormatError(f"{path}: damaged index file ({type(error).__name__}: {error})") from None
+    frames = header.get("frames")
+    if type(frames) is not int or frames < 0:
+        raise IndexFormatError(f"{path}: header 'frames' must be a count, got {_show(frames)}")
+    for array in arrays.values():
+        array.setflags(write=False)  # records share views of the columns
+    file = _File(str(path), arrays, _string_table(path, arrays))
+    _check(FrameRecord, file, "", _Rows(frames, lambda i, f: f"{path}: record {i}.{f}"))
+    unknown = sorted(set(arrays) - file.checked)
+    if unknown:
+        raise IndexFormatError(f"{path}: unknown array(s) {', '.join(unknown)}")
+    return FrameRecords(file, frames), header
 
 
 def read_index_header(path: str | Path) -> dict[str, Any]:
     """The header of an index file written by :func:`save_index` (what :func:`load_index` returns second), read
-    from its first line only: cheap for any size of index.
+    alone: cheap for any size of index.
 
     Raises:
         FileNotFoundError: no such file.
-        IndexFormatError: the first line is no occkit index header.
+        IndexFormatError: no occkit index of this format (see :func:`load_index`).
     """
     path = Path(path)
-    with open(path, "rb") as stream:
-        line = stream.readline(1 << 20).rstrip(b"\r\n")
+    with _open_index(path) as npz:
+        return _header(path, npz)
+
+
+def _open_index(path: Path) -> np.lib.npyio.NpzFile:
+    """The open ``.npz`` of an index file (reading its directory only)."""
     try:
-        text = line.decode("utf-8")
-        header = json.loads(text[: -len(_HEADER_END)] + "}") if text.endswith(_HEADER_END) else None
-    except (json.JSONDecodeError, UnicodeDecodeError):
+        with open(path, "rb") as stream:
+            start = stream.read(len(_JSON_INDEX_START))
+            if start == _JSON_INDEX_START:
+                raise IndexFormatError(f"{path}: {_rebuild_hint(path, start + stream.readline(1 << 20))}")
+    except FileNotFoundError:
+        raise FileNotFoundError(f"index file {path} does not exist") from None
+    if not start.startswith(_ZIP_MAGIC):
+        raise IndexFormatError(f"{path}: not an occkit index (an {INDEX_FORMAT} .npz file)")
+    try:
+        return np.load(path)  # allow_pickle=False: object arrays are refused, nothing is unpickled
+    except _READ_ERRORS as error:
+        raise IndexFormatError(f"{path}: damaged index file ({type(error).__name__}: {error})") from None
+
+
+def _rebuild_hint(path: Path, first_line: bytes) -> str:
+    """What to say of a JSON index (``occkit-index/1``, header on its first line): the command that rebuilds it."""
+    try:
+        header = json.loads(first_line.decode("utf-8").rstrip()[: -len(', "records": [')] + "}")
+    except (UnicodeDecodeError, json.JSONDecodeError):
+        header = {}
+    command = ["occkit", "index", "--root", str(header.get("root", "ROOT")), "--version",
+               str(header.get("version", "VERSION")), "--max-sweeps", str(header.get("max_sweeps", 10))]  # fmt: skip
+    if header.get("split", "all") != "all":
+        command += ["--split", str(header["split"])]
+    if "from_info" in header:
+        command += ["--from-info", str(header["from_info"]), "--trust-pickle"]
+    return (
+        f"a JSON index of an older occkit (occkit-index/1); this occkit reads {INDEX_FORMAT} (.npz): rebuild it "
+        f"with `{shlex.join([*command, '--out', str(path)])}`"
+    )
+
+
+def _header(path: Path, npz: np.lib.npyio.NpzFile) -> dict[str, Any]:
+    try:
+        header = json.loads(str(npz["header"][()]))
+    except (*_READ_ERRORS, json.JSONDecodeError):
         header = None
-    if not isinstance(header, dict) or header.get("format") != INDEX_FORMAT:
-        raise IndexFormatError(f"{path}: the first line is not an occkit index header ({INDEX_FORMAT})")
+    found = header.get("format") if isinstance(header, dict) else None
+    if found != INDEX_FORMAT:
+        raise IndexFormatError(f"{path}: not an occkit index (format {found!r}, expected {INDEX_FORMAT!r})")
     return header
+
+
+def _string_table(path: Path, arrays: dict[str, np.ndarray]) -> list[str]:
+    """The strings of arrays ``strings`` (UTF-8, concatenated) and ``strings.offsets`` (taken out of ``arrays``)."""
+    blob, offsets = arrays.pop("strings", None), arrays.pop("strings.offsets", None)
+    if not (
+        isinstance(blob, np.ndarray)
+        and isinstance(offsets, np.ndarray)
+        and blob.dtype == np.uint8
+        and blob.ndim == 1
+        and offsets.dtype == np.int64
+        and offsets.ndim == 1
+        and len(offsets) > 0
+        and offsets[0] == 0
+        and offsets[-1] == len(blob)
+        and (np.diff(offsets) >= 0).all()
+    ):
+        raise IndexFormatError(
+            f"{path}: no string table: expected arrays 'strings' (uint8) and 'strings.offsets' (int64, rising from 0 "
+            "to the length of 'strings')"
+        )
+    raw, bounds = blob.tobytes(), offsets.tolist()
+    try:
+        return [raw[a:b].decode("utf-8", "surrogatepass") for a, b in zip(bounds[:-1], bounds[1:], strict=True)]
+    except UnicodeDecodeError as error:
+        raise IndexFormatError(f"{path}: the string table is not UTF-8 ({error})") from None
 
 
 def tables_key(root: str | Path, version: str, max_sweeps: int) -> str:

@@ -72,15 +72,16 @@ import numpy as np
 from PIL import Image
 
 from occkit.classes import DETECTION_CLASSES, NUSCENES_TO_OCC3D, detection_name
-from occkit.data.index import (
-    CameraRecord,
-    FrameRecord,
-    SweepRecord,
-    invert_rigid,
-    quaternions_to_rotations,
-    rotation_yaw,
-)
+from occkit.data.index import CameraRecord, FrameRecord, SweepRecord
 from occkit.data.names import is_safe_relative_path, safe_name, safe_relative_path
+from occkit.geometry.numpy_se3 import (
+    invert_transform,
+    make_transform,
+    rotation_about_z,
+    rotation_yaw,
+    transform_from_quaternion,
+    transform_points,
+)
 from occkit.nuscenes import CAMERA_ORDER
 
 __all__ = [
@@ -207,13 +208,11 @@ class _Fields:
 
     def pose(self, rotation: str, translation: str) -> np.ndarray:
         """4x4 from a (w, x, y, z) quaternion and a translation."""
-        matrix = np.eye(4)
+        quaternion, offset = self.array(rotation, (4,)), self.array(translation, (3,))
         try:
-            matrix[:3, :3] = quaternions_to_rotations(self.array(rotation, (4,))[None])[0]
+            return transform_from_quaternion(quaternion, offset)
         except ValueError as error:  # a zero quaternion
             raise self.error(rotation, str(error)) from None
-        matrix[:3, 3] = self.array(translation, (3,))
-        return matrix
 
 
 # ----------------------------------------------------------------------------------------------------- shared parts
@@ -268,12 +267,6 @@ def _class_names(name: str, fields: _Fields, key: str) -> tuple[str, str | None]
     )
 
 
-def _about_z(yaw: np.ndarray) -> np.ndarray:
-    """``(N, 3, 3)`` rotations by ``yaw`` about +z."""
-    cos, sin, zero, one = np.cos(yaw), np.sin(yaw), np.zeros_like(yaw), np.ones_like(yaw)
-    return np.stack((cos, -sin, zero, sin, cos, zero, zero, zero, one), axis=-1).reshape(-1, 3, 3)
-
-
 def _boxes(boxes: np.ndarray, velocity: np.ndarray, lidar2ego: np.ndarray) -> dict[str, np.ndarray]:
     """Box fields of a record from ``(N, 7)`` LiDAR-frame boxes and ``(N, 2)`` velocities (NaN: none)."""
     valid = np.isfinite(velocity).all(axis=1)
@@ -282,9 +275,9 @@ def _boxes(boxes: np.ndarray, velocity: np.ndarray, lidar2ego: np.ndarray) -> di
     velocity_3d = np.concatenate((velocity, np.zeros((len(velocity), 1))), axis=1)  # the files keep no vz
     boxes_ego = np.concatenate(
         (
-            boxes[:, :3] @ rotation.T + lidar2ego[:3, 3],
+            transform_points(lidar2ego, boxes[:, :3]),
             boxes[:, 3:6],
-            rotation_yaw(rotation @ _about_z(boxes[:, 6]))[:, None],
+            rotation_yaw(rotation @ rotation_about_z(boxes[:, 6]))[:, None],
             (velocity_3d @ rotation.T)[:, :2],
         ),
         axis=1,
@@ -348,12 +341,12 @@ def _bevdet_frame(entry: _Fields, root: Path, prefixes: tuple[str, ...], sizes: 
     timestamp = entry.microseconds("timestamp", 1)
     ego2global = entry.pose("ego2global_rotation", "ego2global_translation")
     lidar2ego = entry.pose("lidar2ego_rotation", "lidar2ego_translation")
-    global2ego = invert_rigid(ego2global)
+    global2ego = invert_transform(ego2global)
     sweeps = []
     for sweep in entry.items("sweeps"):
-        sweep2lidar = np.eye(4)
-        sweep2lidar[:3, :3] = sweep.array("sensor2lidar_rotation", (3, 3))
-        sweep2lidar[:3, 3] = sweep.array("sensor2lidar_translation", (3,))
+        sweep2lidar = make_transform(
+            sweep.array("sensor2lidar_rotation", (3, 3)), sweep.array("sensor2lidar_translation", (3,))
+        )
         sweep_time = sweep.microseconds("timestamp", 1)
         sweeps.append(
             SweepRecord(
@@ -445,6 +438,8 @@ def _v2_frame(
     lidar = entry.sub("lidar_points")
     lidar2ego = lidar.array("lidar2ego", (4, 4))
     sweeps = []
+    # The file's matrices went through float32 and are not exactly rigid: the general inverse is the inverse of what
+    # the file holds, invert_transform's would assume a rotation that is not quite there.
     for sweep in entry.items("lidar_sweeps") if "lidar_sweeps" in entry else []:
         points = sweep.sub("lidar_points")
         sweep_time = sweep.microseconds("timestamp", 10**6)
