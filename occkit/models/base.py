@@ -19,28 +19,33 @@ zoo presets and its benchmark stages, declared at the bottom of the family's mod
 
 from __future__ import annotations
 
+import abc
 import dataclasses
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
+import torch
 from torch import Tensor, nn
 
 from occkit.experiment import Experiment
+from occkit.models.heads.occupancy import occupancy_prediction
 from occkit.types import Batch, ModelOutput, OccPrediction
 
-__all__ = ["FIXED_CALIBRATION_RETIRED", "OccupancyModel", "Architecture", "Deployment", "CameraInputs", "plan_tensors",
-           "plan_with_tensors"]
+__all__ = ["FIXED_CALIBRATION_RETIRED", "OccupancyModel", "Architecture", "Deployment", "CameraInputs", "camera_images",
+           "plan_tensors", "plan_with_tensors"]
 
 #: Why ``fixed_calibration``, a key of older view-transform and DA-Occ configs, is gone.
 FIXED_CALIBRATION_RETIRED = ("a fixed rig is an inference optimisation now (occkit bench's fixed_calibration, "
                              "occkit.models.inference.fix_calibration), not a model setting")
 
 
-class OccupancyModel(nn.Module):
+class OccupancyModel(nn.Module, metaclass=abc.ABCMeta):
     """Base of the occupancy architectures: ``forward(batch) = network(inputs(batch), plan(batch))``.
 
-    Subclasses implement :meth:`plan`, :meth:`inputs`, :meth:`network`, :meth:`loss` and :meth:`deployment`.
+    Subclasses implement :meth:`plan`, :meth:`inputs`, :meth:`network` and :meth:`loss`; they override
+    :meth:`deployment` when their graph takes more than camera images, and :meth:`predict` when it returns more than
+    the occupancy classes.
     """
 
     reuse_plan: bool = False
@@ -51,21 +56,21 @@ class OccupancyModel(nn.Module):
         super().__init__()
         self._reused: tuple[tuple, Any] | None = None
 
+    @abc.abstractmethod
     def plan(self, batch: Batch) -> Any:
         """The calibration-only tensors of ``batch``'s rig and augmentation (a dataclass of tensors)."""
-        raise NotImplementedError
 
+    @abc.abstractmethod
     def inputs(self, batch: Batch) -> dict[str, Tensor]:
         """The frame's inputs to :meth:`network`, by name."""
-        raise NotImplementedError
 
+    @abc.abstractmethod
     def network(self, inputs: Mapping[str, Tensor], plan: Any) -> ModelOutput:
         """The outputs for ``inputs`` (from :meth:`inputs`) under ``plan`` (from :meth:`plan`)."""
-        raise NotImplementedError
 
+    @abc.abstractmethod
     def loss(self, output: ModelOutput, batch: Batch) -> dict[str, Tensor]:
         """Weighted loss terms; their sum is the training loss."""
-        raise NotImplementedError
 
     def deployment(self, batch: Batch) -> Deployment:
         """The graph inputs of this model's fixed-rig network for ``batch``'s rig (:mod:`occkit.models.deployment`);
@@ -85,9 +90,17 @@ class OccupancyModel(nn.Module):
     def forward(self, batch: Batch) -> ModelOutput:
         return self.network(self.inputs(batch), self.current_plan(batch))
 
+    @torch.no_grad()
     def predict(self, batch: Batch) -> OccPrediction:
         """Class ids ``(B, X, Y, Z)`` uint8."""
-        raise NotImplementedError
+        return occupancy_prediction(self.forward(batch).occupancy)
+
+
+def camera_images(batch: Batch, model: str) -> Tensor:
+    """``batch.images``, or a ValueError saying that ``model`` needs them."""
+    if batch.images is None:
+        raise ValueError(f"{model} needs camera images but the batch has none")
+    return batch.images
 
 
 def plan_tensors(plan: Any, prefix: str = "") -> dict[str, Tensor]:
@@ -104,10 +117,12 @@ def plan_tensors(plan: Any, prefix: str = "") -> dict[str, Tensor]:
     return {path.rstrip("."): tensor for path, tensor in found.items()}
 
 
-def plan_with_tensors(plan: Any, tensors: Mapping[str, Tensor], prefix: str = "") -> Any:
-    """``plan`` with its tensors replaced by ``tensors`` (paths as :func:`plan_tensors` gives them)."""
-    if isinstance(plan, Tensor):
-        return tensors[prefix.rstrip(".")]
+def plan_with_tensors(plan: Any, tensors: Mapping[str, Tensor | None], prefix: str = "") -> Any:
+    """``plan`` with the values at the paths of ``tensors`` (as :func:`plan_tensors` gives them) replaced: by tensors
+    to fill a plan, or by None to keep only its structure and sizes."""
+    path = prefix.rstrip(".")
+    if path in tensors:
+        return tensors[path]
     if plan is None or not dataclasses.is_dataclass(plan):
         return plan
     changes = {f.name: plan_with_tensors(getattr(plan, f.name), tensors, f"{prefix}{f.name}.")
@@ -115,7 +130,7 @@ def plan_with_tensors(plan: Any, tensors: Mapping[str, Tensor], prefix: str = ""
     return dataclasses.replace(plan, **changes)
 
 
-class Deployment(nn.Module):
+class Deployment(nn.Module, metaclass=abc.ABCMeta):
     """The graph inputs of a model's fixed-rig network (:mod:`occkit.models.deployment`), as the model declares them.
 
     :meth:`inputs` makes them from a batch of the rig, outside the graph; :meth:`forward` runs inside the graph and
@@ -138,9 +153,9 @@ class Deployment(nn.Module):
         if dynamic_axes:
             self.dynamic_axes[name] = dynamic_axes
 
+    @abc.abstractmethod
     def inputs(self, batch: Batch) -> dict[str, Tensor]:
         """The graph inputs for a batch of the same rig, by name, in :attr:`input_names` order."""
-        raise NotImplementedError
 
     def forward(self, inputs: Mapping[str, Tensor]) -> Mapping[str, Tensor]:
         return inputs
@@ -151,9 +166,7 @@ class CameraInputs(Deployment):
 
     def __init__(self, batch: Batch) -> None:
         super().__init__()
-        if batch.images is None:
-            raise ValueError("the model needs camera images but the reference batch has none")
-        self.image_shape = tuple(batch.images.shape)
+        self.image_shape = tuple(camera_images(batch, "the model").shape)
         self.declare("images", f"{self.image_shape} float32 normalised camera images (test transform)")
 
     def inputs(self, batch: Batch) -> dict[str, Tensor]:

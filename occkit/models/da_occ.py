@@ -39,11 +39,11 @@ from occkit.losses import (
     scene_class_affinity_geometric,
     scene_class_affinity_semantic,
 )
-from occkit.models.base import FIXED_CALIBRATION_RETIRED, Architecture, OccupancyModel
+from occkit.models.base import FIXED_CALIBRATION_RETIRED, Architecture, OccupancyModel, camera_images
 from occkit.models.bev_encoder import BevEncoder, BevEncoderConfig
 from occkit.models.dac import DACBlock
 from occkit.models.heads.depth import DepthNet, DepthNetConfig, camera_parameters
-from occkit.models.heads.occupancy import OccupancyHead, OccupancyHeadConfig, occupancy_prediction
+from occkit.models.heads.occupancy import OccupancyHead, OccupancyHeadConfig
 from occkit.models.image_encoder import ImageEncoder, ImageEncoderConfig
 from occkit.models.view_transform.lss import (
     PoolingPlan,
@@ -55,7 +55,7 @@ from occkit.models.view_transform.lss import (
     voxel_pool,
 )
 from occkit.nuscenes import CAMERAS
-from occkit.types import Batch, ModelOutput, OccPrediction
+from occkit.types import Batch, ModelOutput
 
 __all__ = ["DAOccLossWeights", "DirectionAwareOccConfig", "DirectionAwarePlan", "DirectionAwareOcc", "ARCHITECTURE",
            "da_occ", "da_occ_tiny"]
@@ -181,7 +181,7 @@ class DirectionAwareOcc(OccupancyModel):
         self.occupancy_head = OccupancyHead(cfg.occupancy)
 
     def plan(self, batch: Batch) -> DirectionAwarePlan:
-        images = _images(batch)
+        images = camera_images(batch, "DA-Occ")
         points_uvd = frustum(tuple(images.shape[-2:]), self.cfg.feature_stride, self.cfg.depth_range,
                              device=images.device)
         points = lift_geometry(points_uvd, batch.intrinsics.float(), batch.cam2ego.float(), batch.img_aug.float(),
@@ -195,7 +195,7 @@ class DirectionAwareOcc(OccupancyModel):
         )
 
     def inputs(self, batch: Batch) -> dict[str, Tensor]:
-        return {"images": _images(batch)}
+        return {"images": camera_images(batch, "DA-Occ")}
 
     def network(self, inputs: Mapping[str, Tensor], plan: DirectionAwarePlan) -> ModelOutput:
         features = self.image_encoder(inputs["images"])  # (B, N, C, h, w)
@@ -244,15 +244,6 @@ class DirectionAwareOcc(OccupancyModel):
             ),
         }
 
-    @torch.no_grad()
-    def predict(self, batch: Batch) -> OccPrediction:
-        return occupancy_prediction(self.forward(batch).occupancy)
-
-
-def _images(batch: Batch) -> Tensor:
-    if batch.images is None:
-        raise ValueError("DA-Occ needs camera images but the batch has none")
-    return batch.images
 
 
 # ------------------------------------------------------------------------------------------------- zoo presets

@@ -26,7 +26,7 @@ from occkit.data.dataset import DatasetConfig
 from occkit.experiment import CPU_TRAIN, Experiment, TrainConfig, cpu_data
 from occkit.geometry.grid import OCC3D_GRID, VoxelGrid
 from occkit.label_space import OCC3D_SPACE, SURROUNDOCC_SPACE, LabelSpace
-from occkit.models.base import Architecture, CameraInputs, Deployment, OccupancyModel
+from occkit.models.base import Architecture, CameraInputs, Deployment, OccupancyModel, camera_images
 from occkit.models.bev_encoder import BevEncoder, BevEncoderConfig, ConvFuser
 from occkit.models.heads.center import CenterHead, CenterHeadConfig
 from occkit.models.heads.occupancy import OccupancyHead, OccupancyHeadConfig, occupancy_prediction
@@ -147,7 +147,7 @@ class DAOcc(OccupancyModel):
     def plan(self, batch: Batch) -> FusionPlan:
         sampling = None
         if self.view_transform is not None:
-            images = self._images(batch)
+            images = camera_images(batch, "this DAOcc (it has a camera branch)")
             sampling = self.view_transform.plan(
                 batch.intrinsics, batch.cam2ego, batch.img_aug, batch.lidar2ego, batch.bev_aug,
                 image_size=tuple(images.shape[-2:]), camera_mask=batch.camera_mask,
@@ -158,17 +158,12 @@ class DAOcc(OccupancyModel):
     def inputs(self, batch: Batch) -> dict[str, Tensor]:
         inputs = {}
         if self.image_encoder is not None:
-            inputs["images"] = self._images(batch)
+            inputs["images"] = camera_images(batch, "this DAOcc (it has a camera branch)")
         if self.lidar_encoder is not None:
             if batch.points is None:
                 raise ValueError("this DAOcc has a LiDAR branch but the batch has no points")
             inputs.update(points=batch.points, num_points=batch.num_points)
         return inputs
-
-    def _images(self, batch: Batch) -> Tensor:
-        if batch.images is None:
-            raise ValueError("this DAOcc has a camera branch but the batch has no images")
-        return batch.images
 
     def encode(self, inputs: Mapping[str, Tensor], plan: FusionPlan) -> Tensor:
         """The fused and encoded BEV ``(B, bev.neck_channels, X_bev, Y_bev)`` in the augmented LiDAR frame."""

@@ -40,13 +40,15 @@ class DeployedNetwork(nn.Module):
         super().__init__()
         self.model = model
         self.deployment = model.deployment(batch)
-        self._plan = model.plan(batch)
-        # Buffers, not persistent: they follow .to(device) but stay out of state dicts (derived, not learned).
+        plan = model.plan(batch)
+        # Buffers, not persistent: they follow .to(device) but stay out of state dicts (derived, not learned). The
+        # template keeps the plan's structure and sizes without its tensors, which live in the buffers only.
         self._plan_buffers = {}
-        for path, tensor in plan_tensors(self._plan).items():
+        for path, tensor in plan_tensors(plan).items():
             name = "plan_" + path.replace(".", "_")
-            self.register_buffer(name, tensor.detach().clone(), persistent=False)
+            self.register_buffer(name, tensor.detach(), persistent=False)
             self._plan_buffers[path] = name
+        self._template = plan_with_tensors(plan, dict.fromkeys(self._plan_buffers))
 
     @property
     def input_names(self) -> list[str]:
@@ -69,7 +71,8 @@ class DeployedNetwork(nn.Module):
 
     def plan(self) -> object:
         """The fixed plan, its tensors those of the buffers (on the network's device)."""
-        return plan_with_tensors(self._plan, {path: getattr(self, name) for path, name in self._plan_buffers.items()})
+        tensors = {path: getattr(self, name) for path, name in self._plan_buffers.items()}
+        return plan_with_tensors(self._template, tensors)
 
     def forward(self, *inputs: Tensor) -> Tensor:
         if len(inputs) != len(self.input_names):

@@ -18,19 +18,18 @@ import dataclasses
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 
-import torch
 from torch import Tensor
 
 from occkit.data.dataset import DatasetConfig
 from occkit.experiment import CPU_TRAIN, Experiment, TrainConfig, cpu_data
 from occkit.label_space import OCC3D_SPACE
-from occkit.models.base import Architecture, OccupancyModel
+from occkit.models.base import Architecture, OccupancyModel, camera_images
 from occkit.models.bev_encoder import BevEncoder, BevEncoderConfig
-from occkit.models.heads.occupancy import OccupancyHead, OccupancyHeadConfig, occupancy_prediction
+from occkit.models.heads.occupancy import OccupancyHead, OccupancyHeadConfig
 from occkit.models.image_encoder import ImageEncoder, ImageEncoderConfig
 from occkit.models.view_transform.lss import LSSConfig, LSSViewTransform, PoolingPlan
 from occkit.nuscenes import CAMERAS
-from occkit.types import Batch, ModelOutput, OccPrediction
+from occkit.types import Batch, ModelOutput
 
 __all__ = ["FlashOccConfig", "FlashOcc", "ARCHITECTURE", "flashocc_m0", "flashocc_m1", "flashocc_tiny"]
 
@@ -89,12 +88,12 @@ class FlashOcc(OccupancyModel):
         self.occupancy_head = OccupancyHead(cfg.occupancy)
 
     def plan(self, batch: Batch) -> PoolingPlan:
-        images = _images(batch)
+        images = camera_images(batch, "FlashOcc")
         return self.view_transform.plan(batch.intrinsics, batch.cam2ego, batch.img_aug, batch.occ_aug,
                                         image_size=tuple(images.shape[-2:]), camera_mask=batch.camera_mask)
 
     def inputs(self, batch: Batch) -> dict[str, Tensor]:
-        return {"images": _images(batch)}
+        return {"images": camera_images(batch, "FlashOcc")}
 
     def network(self, inputs: Mapping[str, Tensor], plan: PoolingPlan) -> ModelOutput:
         features = self.image_encoder(inputs["images"])  # (B, N, 256, h, w)
@@ -108,15 +107,6 @@ class FlashOcc(OccupancyModel):
             raise ValueError("the occupancy loss needs batch.voxel_semantics")
         return self.occupancy_head.loss(output.occupancy, batch.voxel_semantics, batch.mask_camera)
 
-    @torch.no_grad()
-    def predict(self, batch: Batch) -> OccPrediction:
-        return occupancy_prediction(self.forward(batch).occupancy)
-
-
-def _images(batch: Batch) -> Tensor:
-    if batch.images is None:
-        raise ValueError("FlashOcc needs camera images but the batch has none")
-    return batch.images
 
 
 # ------------------------------------------------------------------------------------------------- zoo presets
