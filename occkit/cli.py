@@ -26,6 +26,7 @@ from occkit.arguments import (
     output_file,
     output_folder,
 )
+from occkit.errors import UsageError
 
 #: The names of :data:`occkit.label_space.LABEL_SPACES`, spelled out so that ``occkit --help`` imports no torch
 #: (``tests/test_cli.py`` keeps them equal).
@@ -370,11 +371,13 @@ def _load_trained(args: argparse.Namespace, device):
 
 def _run_train(args: argparse.Namespace) -> int:
     from occkit import zoo
-    from occkit.engine.train import train
+    from occkit.engine.train import check_initial_weights, train
 
     output_folder(args.out, "--out")
     check_device(args.device)
     experiment = zoo.load_experiment(args.config, args.set)
+    if args.resume is None and _is_main_process():
+        check_initial_weights(experiment)  # a missing weights file is named before anything else is looked at
     data_root = Path(experiment.data.root)
     if not data_root.is_dir():
         raise FileNotFoundError(f"data root {data_root} does not exist (set data.root, or write a synthetic dataset "
@@ -394,7 +397,14 @@ def _run_train(args: argparse.Namespace) -> int:
 
 # ----------------------------------------------------------------------------------------------------- eval
 def _add_eval(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--ckpt", type=Path, required=True, help="checkpoint (best.pt, step-*.pt)")
+    weights = parser.add_mutually_exclusive_group(required=True)
+    weights.add_argument("--ckpt", type=Path, help="checkpoint (best.pt, step-*.pt)")
+    weights.add_argument("--weights", type=Path, metavar="FILE",
+                         help="weights without a run, e.g. an official checkpoint converted by occkit convert "
+                              "(.safetensors); scored with the experiment of --model or --config")  # fmt: skip
+    parser.add_argument("--model", default=None, metavar="ENTRY",
+                        help="with --weights: the zoo entry whose experiment scores them (default: the entry the "
+                             "file was converted for)")  # fmt: skip
     _add_experiment_overrides(parser)
     parser.add_argument("--data", type=Path, default=None, help="dataset root (default: the one it was trained on)")
     parser.add_argument("--split", default=None, help="split to score (default: the run's validation split)")
@@ -421,7 +431,8 @@ def _run_eval(args: argparse.Namespace) -> int:
     # Under torchrun every rank scores its share of the frames; the counts are summed, rank 0 writes the report.
     context = distributed.setup(args.device)
     try:
-        model, experiment = _load_trained(args, context.device)
+        load = _load_trained if args.weights is None else _load_weights
+        model, experiment = load(args, context.device)
         dataset = evaluation_dataset(experiment, args.data, args.split or experiment.train.val_split)
         predictions = args.out / "predictions" if args.save_predictions else None
         if context.is_main:
@@ -437,8 +448,8 @@ def _run_eval(args: argparse.Namespace) -> int:
                                     ray_origins=origins, progress=bar.update, mask=mask)  # fmt: skip
         if context.is_main:
             # The keys of occkit eval-preds' report (every frame has its prediction here).
-            result.update(missing_predictions=0, checkpoint=str(args.ckpt), split=dataset.config.split,
-                          root=dataset.config.root)  # fmt: skip
+            result.update(missing_predictions=0, checkpoint=str(args.ckpt or args.weights),
+                          split=dataset.config.split, root=dataset.config.root)  # fmt: skip
             print(markdown_table(result), end="")
             if result["skipped"]:
                 print(f"note: {result['skipped']} frame(s) failed to load and were skipped (data.on_error=skip): "
@@ -453,11 +464,35 @@ def _run_eval(args: argparse.Namespace) -> int:
 
 def _check_trained_run_args(args: argparse.Namespace) -> None:
     """The options ``eval`` and ``predict`` share, checked before the model is loaded."""
-    input_file(args.ckpt, "--ckpt")
+    if getattr(args, "weights", None) is not None:
+        input_file(args.weights, "--weights")
+        if args.model is not None and args.config is not None:
+            raise UsageError("--model and --config both name the experiment to score --weights with: give one")
+    else:
+        input_file(args.ckpt, "--ckpt")
+        if getattr(args, "model", None) is not None:
+            raise UsageError("--model goes with --weights; a checkpoint names its own model (use --config to run "
+                             "it with another experiment)")
     if args.data is not None:
         input_folder(args.data, "--data")
     output_folder(args.out, "--out")
     check_device(args.device)
+
+
+def _load_weights(args: argparse.Namespace, device):
+    """``eval --weights``: the model of ``--model`` / ``--config`` (else the entry the file was converted for) with
+    the file's weights, strictly loaded, and its experiment."""
+    from occkit import zoo
+    from occkit.convert import load_weights, read_checkpoint
+
+    source = args.config or args.model
+    if source is None:
+        source = read_checkpoint(args.weights).metadata.get("entry")
+        if source is None:
+            raise UsageError(f"--weights {args.weights} does not say which model it is: name it with --model ENTRY")
+    experiment = zoo.load_experiment(source, args.set)
+    model = zoo.build_from_config(experiment.architecture, experiment.model)
+    return load_weights(args.weights, model).to(device).eval(), experiment
 
 
 def _prepare_out(out: Path) -> None:
@@ -522,6 +557,36 @@ def _run_demo(args: argparse.Namespace) -> int:
     models = None if args.steps is None else {name: args.steps for name in DEMO_MODELS}
     report = run_demo(args.out, args.data, models)
     print(f"report: {report}")
+    return 0
+
+
+# ----------------------------------------------------------------------------------------------------- convert
+def _add_convert(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("checkpoint", type=Path, metavar="CKPT",
+                        help="official checkpoint: FlashOcc / BEVDet (mmdet3d .pth, EMA files too) or DAOcc "
+                             "(BEVFusion-style); read without unpickling code")  # fmt: skip
+    parser.add_argument("--model", default=None, metavar="ENTRY",
+                        help="zoo entry to convert for (default: from the checkpoint, FlashOcc / BEVDet -> "
+                             "flashocc_m0, DAOcc -> daocc)")  # fmt: skip
+    parser.add_argument("--out", type=Path, required=True, metavar="FILE",
+                        help="occkit weights FILE.safetensors; the report goes to FILE.report.json")
+    parser.add_argument("--partial", action="store_true",
+                        help="write what converts even when some tensors do not fit (a start for train.load_from, "
+                             "e.g. BEVDet's detection checkpoint for FlashOcc); by default any unplaced, missing or "
+                             "misshapen tensor is an error")  # fmt: skip
+
+
+def _run_convert(args: argparse.Namespace) -> int:
+    from occkit.convert import convert_checkpoint, format_report
+
+    input_file(args.checkpoint, "CKPT")
+    output_file(args.out, "--out")
+    if args.out.suffix != ".safetensors":
+        raise UsageError(f"--out {args.out} must be a .safetensors file")
+    conversion = convert_checkpoint(args.checkpoint, args.model, args.out, strict=not args.partial)
+    print(format_report(conversion.report()))
+    for path in conversion.files.values():
+        print(f"wrote {path}")
     return 0
 
 
@@ -697,6 +762,8 @@ COMMANDS: dict[str, Command] = {
     "eval": ("score a checkpoint on a dataset split: mIoU, IoU, RayIoU, per-class table and plots", _add_eval,
              _run_eval),
     "predict": ("write Occ3D-format <token>.npz predictions of a checkpoint", _add_predict, _run_predict),
+    "convert": ("convert an official FlashOcc / BEVDet or DAOcc checkpoint to occkit weights (.safetensors) with "
+                "a report", _add_convert, _run_convert),
     "export": ("export a model to ONNX (standard operators, one fixed rig) and check it in onnxruntime", _add_export,
                _run_export),
     "bench": ("inference latency, FPS, per-stage times, MACs and GEMM efficiency of a model; the fast path",

@@ -14,10 +14,10 @@ that every layer above it (models, zoo, engine) can speak of experiments.
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, TypeVar
 
 import yaml
 
@@ -27,8 +27,11 @@ from occkit.data.transforms import ImageAugConfig
 from occkit.geometry.grid import VoxelGrid
 from occkit.label_space import LabelSpace, label_space
 
-__all__ = ["TrainConfig", "Experiment", "check_label_space", "experiment_from_dict", "read_experiment_file",
-           "experiment_yaml", "replace_train", "CPU_ROOT", "CPU_TRAIN", "cpu_data"]
+__all__ = ["TrainConfig", "Experiment", "PaperRow", "reproduces", "check_label_space", "experiment_from_dict",
+           "read_experiment_file", "experiment_yaml", "replace_train", "CPU_ROOT", "CPU_TRAIN", "cpu_data"]
+
+
+Preset = TypeVar("Preset", bound=Callable[[], "Experiment"])
 
 
 @dataclass(frozen=True)
@@ -43,6 +46,17 @@ class TrainConfig:
     """Samples per process per forward pass; the global batch is batch_size x processes x accumulate."""
     accumulate: int = 1
     """Forward/backward passes per optimizer step (gradient accumulation)."""
+    global_batch: int = 0
+    """The reference's samples per optimizer step over all processes; when set, accumulate is derived as
+    global_batch / (batch_size x processes), which must divide it (8 GPUs x 4 = 32 is 4 x 8 on one GPU); 0 uses
+    accumulate as given."""
+    sampler: Literal["random", "cbgs"] = "random"
+    """Training order: every sample once per epoch in random order, or CBGS (class-balanced grouping and sampling,
+    mmdetection3d's ``CBGSDataset``): samples duplicated per detection class so that every class is seen as often."""
+    load_from: str | None = None
+    """Whole-model weights loaded before training (an occkit checkpoint or ``.safetensors``, or a reference
+    checkpoint that ``occkit convert`` reads): partial and shape-checked, what is skipped is listed (FlashOcc starts
+    from BEVDet's detection checkpoint this way). Not used when resuming."""
     lr: float = 1e-4
     """Peak learning rate of AdamW."""
     weight_decay: float = 0.01
@@ -53,14 +67,29 @@ class TrainConfig:
     """Linear warm-up steps, from warmup_ratio x lr to lr."""
     warmup_ratio: float = 1.0 / 3.0
     """Learning rate at step 0 as a fraction of lr (mmcv's warmup_ratio)."""
+    lr_policy: Literal["cosine", "step"] = "cosine"
+    """After the warm-up: ``cosine`` anneals to min_lr_ratio x lr (DAOcc); ``step`` multiplies the rate by lr_gamma
+    at each epoch of lr_steps (mmcv's step policy: FlashOcc's ``step=[24]`` over 24 epochs keeps it constant)."""
+    lr_by_epoch: bool = False
+    """The schedule (not the warm-up) changes the rate once per epoch, as mmcv's runners do by default (DAOcc's
+    cosine over 6 epochs); False: every optimizer step."""
     min_lr_ratio: float = 1e-3
     """Cosine annealing ends at min_lr_ratio x lr."""
+    lr_steps: tuple[int, ...] = ()
+    """Step policy: epochs at whose start the rate is multiplied by lr_gamma."""
+    lr_gamma: float = 0.1
+    """Step policy: the factor applied at each of lr_steps."""
     grad_clip: float = 5.0
     """Maximum global gradient norm (0: no clipping)."""
     precision: Literal["fp32", "bf16", "fp16"] = "fp32"
     """Autocast precision on CUDA (fp16 adds loss scaling); CPU always trains in fp32."""
     ema_decay: float = 0.999
     """Decay of the exponential moving average of the weights, used for validation and saved (0: none)."""
+    ema_ramp: float = 0.0
+    """Ramp of the decay over the EMA's updates t, ``ema_decay x (1 - exp(-t / ema_ramp))`` (BEVDepth's MEGVII EMA,
+    which DAOcc and FlashOcc use with 2000); 0: the constant ema_decay."""
+    ema_initial_updates: int = 0
+    """t before the first update (the references' ``init_updates``: 10560, which starts the ramp near its end)."""
     seed: int = 0
     """Seed of the weights, the data order, the augmentations and every other random draw."""
     workers: int = 2
@@ -84,6 +113,15 @@ class TrainConfig:
                 raise ValueError(f"train.{name} must be at least 1, got {value}")
         if self.lr <= 0 or not 0 <= self.ema_decay < 1 or not 0 < self.warmup_ratio <= 1:
             raise ValueError("train.lr must be > 0, train.ema_decay in [0, 1) and train.warmup_ratio in (0, 1]")
+        if self.global_batch < 0 or self.ema_ramp < 0 or self.ema_initial_updates < 0 or self.lr_gamma <= 0:
+            raise ValueError("train.global_batch, ema_ramp and ema_initial_updates must be >= 0 and lr_gamma > 0")
+        if self.global_batch and self.accumulate != 1:
+            raise ValueError("set train.global_batch or train.accumulate, not both: global_batch derives accumulate")
+        if self.global_batch and self.global_batch % self.batch_size:
+            raise ValueError(f"train.global_batch {self.global_batch} is not a multiple of train.batch_size "
+                             f"{self.batch_size}")
+        if self.lr_steps and self.lr_policy != "step":
+            raise ValueError("train.lr_steps is used by lr_policy: step only")
 
 
 @dataclass(frozen=True)
@@ -98,6 +136,32 @@ class Experiment:
     def to_dict(self) -> dict:
         return {"architecture": self.architecture, "model": to_dict(self.model), "data": to_dict(self.data),
                 "train": to_dict(self.train)}  # fmt: skip
+
+
+@dataclass(frozen=True)
+class PaperRow:
+    """The published number a zoo entry's recipe reproduces on the real data."""
+
+    paper: str
+    """Paper and table, e.g. ``DAOcc (Yang et al., TCSVT 2025), Table I``."""
+    row: str
+    """The row as the table names it, with what distinguishes it (mask, frames, ablation arm)."""
+    result: str
+    """The number, metric and split, e.g. ``53.82 mIoU, Occ3D-nuScenes val (camera mask)``."""
+
+    def __str__(self) -> str:
+        return f"{self.paper}, {self.row}: {self.result}"
+
+
+def reproduces(paper: str, row: str, result: str) -> Callable[[Preset], Preset]:
+    """Mark a zoo preset with the paper row its recipe reproduces (``occkit.zoo.paper_row``, the config headers and
+    docs/reproducing.md read it)."""
+
+    def mark(preset: Preset) -> Preset:
+        preset.paper_row = PaperRow(paper, row, result)  # type: ignore[attr-defined]
+        return preset
+
+    return mark
 
 
 def experiment_from_dict(

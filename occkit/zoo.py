@@ -14,18 +14,20 @@ Every entry has a YAML twin in ``configs/NAME.yaml``: the whole experiment (``ar
 
 from __future__ import annotations
 
+import textwrap
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
 from occkit import experiment as _experiment
 from occkit.config import ConfigError
-from occkit.experiment import Experiment, experiment_yaml
-from occkit.models import da_occ, daocc, flashocc
+from occkit.experiment import Experiment, PaperRow, experiment_yaml
+from occkit.models import da_occ, daocc, flashocc, pretrained
 from occkit.models.base import Architecture, OccupancyModel
 
-__all__ = ["ARCHITECTURES", "names", "description", "architecture", "model_config", "experiment", "build",
-           "build_from_config", "config_yaml", "config_class", "experiment_from_dict", "load_experiment"]
+__all__ = ["ARCHITECTURES", "names", "description", "paper_row", "needed_files", "architecture", "model_config",
+           "experiment", "build", "build_from_config", "config_yaml", "config_class", "experiment_from_dict",
+           "load_experiment"]
 
 #: Architecture name -> its declaration; adding an architecture is one line here.
 ARCHITECTURES: dict[str, Architecture] = {
@@ -56,6 +58,22 @@ def _entry(name: str) -> Callable[[], Experiment]:
 def description(name: str) -> str:
     """One paragraph on what the entry is."""
     return " ".join((_entry(name).__doc__ or "").split())
+
+
+def paper_row(name: str) -> PaperRow | None:
+    """The published row the entry's recipe reproduces on the real data (None for the CPU-sized entries)."""
+    return getattr(_entry(name), "paper_row", None)
+
+
+def needed_files(experiment: Experiment) -> list[str]:
+    """The weight files an experiment starts from: its backbones' pretrained files and its ``train.load_from``."""
+    files = []
+    for setting, depth in pretrained.backbone_settings(experiment.model):
+        file = pretrained.needed_file(setting, depth)
+        files.append(f"{pretrained.SETTING} = {setting}" + ("" if setting.endswith(file) else f" ({file})"))
+    if experiment.train.load_from:
+        files.append(f"train.load_from = {experiment.train.load_from}")
+    return files
 
 
 def experiment(name: str) -> Experiment:
@@ -119,5 +137,13 @@ def load_experiment(source: str | Path, overrides: Sequence[str] = ()) -> Experi
 
 def config_yaml(name: str) -> str:
     """The text of ``configs/NAME.yaml``: a description, then the commented experiment."""
-    header = f"# {name}: {description(name)}\n# occkit train --config configs/{name}.yaml --out runs/{name}"
-    return experiment_yaml(experiment(name), header)
+    entry = experiment(name)
+    lines = [f"{name}: {description(name)}"]
+    if (row := paper_row(name)) is not None:
+        lines.append(f"Reproduces {row}.")
+    needed = needed_files(entry)
+    lines.append("Starts from " + "; ".join(needed) + "." if needed else "Starts from random weights.")
+    lines.append(f"occkit train --config configs/{name}.yaml --out runs/{name}")
+    header = "\n".join(textwrap.fill(line, 116, initial_indent="# ", subsequent_indent="#   ", break_long_words=False,
+                                      break_on_hyphens=False) for line in lines)  # fmt: skip
+    return experiment_yaml(entry, header)

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import dataclasses
 import io
+import json
 import os
 import shutil
 import warnings
@@ -13,10 +15,19 @@ import pytest
 import torch
 from PIL import Image, ImageFile
 
+from occkit.classes import DETECTION_CLASSES
 from occkit.data import dataset as dataset_module
 from occkit.data.collate import collate
 from occkit.data.dataset import DatasetConfig, OccupancyDataset, SampleError
-from occkit.data.index import IndexFormatError, load_index, read_index_header, save_index, tables_key
+from occkit.data.index import (
+    INDEX_FORMAT,
+    IndexFormatError,
+    OutdatedIndexError,
+    load_index,
+    read_index_header,
+    save_index,
+    tables_key,
+)
 from occkit.data.transforms import BevAugConfig, ImageAugConfig
 from occkit.geometry.grid import OCC3D_GRID
 from occkit.sim.generate import SimConfig, simulate_dataset
@@ -249,6 +260,51 @@ def test_a_missing_or_corrupt_label_file_is_a_sample_error(broken):
         dataset[0]
 
 
+# ----------------------------------------------------------------------------------------------------- valid boxes
+BOXES_ONLY = {"cameras": (), "sweeps": -1, "occupancy": False}
+
+
+def test_valid_boxes_only_keeps_the_boxes_with_points(root):
+    every, valid = _dataset(root, **BOXES_ONLY), _dataset(root, valid_boxes_only=True, **BOXES_ONLY)
+    dropped = 0
+    for index, record in enumerate(every.records):
+        detection = [i for i, name in enumerate(record.box_detection_names) if name is not None]
+        kept = [k for k, i in enumerate(detection) if record.box_valid[i]]  # rows of the detection boxes
+        all_boxes, valid_boxes = every[index], valid[index]
+        assert len(all_boxes.boxes) == len(detection) and len(valid_boxes.boxes) == len(kept)
+        torch.testing.assert_close(valid_boxes.boxes, all_boxes.boxes[kept], rtol=0, atol=0)
+        assert valid_boxes.box_labels.tolist() == all_boxes.box_labels[kept].tolist()
+        dropped += len(detection) - len(kept)
+    assert dropped > 0  # the world has boxes that a camera saw and the LiDAR did not
+
+
+def _classes(record, valid_only: bool) -> set[str]:
+    """The detection classes of a record's boxes (with a point only, where ``valid_only``)."""
+    return {n for n, v in zip(record.box_detection_names, record.box_valid, strict=True) if n and (v or not valid_only)}
+
+
+def test_sample_classes_follow_the_boxes_and_their_valid_flags(root, tmp_path):
+    every = _dataset(root, **BOXES_ONLY)
+    expected = [_classes(record, valid_only=False) for record in every.records]
+    assert every.sample_classes() == expected and set().union(*expected) <= set(DETECTION_CLASSES)
+    # An index in which no box of one class of sample 0 has a point: the class leaves that sample with
+    # valid_boxes_only, and only then.
+    record = every.records[0]
+    name = next(n for n, v in zip(record.box_detection_names, record.box_valid, strict=True) if n and v)
+    flags = record.box_valid & (np.array(record.box_detection_names, dtype=object) != name)
+    path = tmp_path / "index.npz"
+    save_index([dataclasses.replace(record, box_valid=flags), *every.records[1:]], path,
+               {"version": VERSION, "root": str(root), "max_sweeps": 0})  # fmt: skip
+    plain = _dataset(root, index=str(path), **BOXES_ONLY)
+    valid = _dataset(root, index=str(path), valid_boxes_only=True, **BOXES_ONLY)
+    assert plain.sample_classes() == expected
+    valid_expected = [_classes(r, valid_only=True) for r in plain.records]
+    assert valid.sample_classes() == valid_expected
+    assert name in expected[0] and name not in valid_expected[0]
+    assert valid_expected[1:] == [_classes(r, valid_only=True) for r in every.records[1:]]
+    assert len(valid[0].boxes) == int(flags[[n is not None for n in record.box_detection_names]].sum())
+
+
 # ----------------------------------------------------------------------------------------------------- index cache
 def test_index_cache_follows_the_tables_content_not_their_modification_time(root, tmp_path, monkeypatch):
     data = tmp_path / "tables"
@@ -303,6 +359,25 @@ def test_a_corrupt_or_unsafe_index_cache_is_rebuilt_with_a_warning(root, tmp_pat
         warnings.simplefilter("error")
         assert _dataset(data, cameras=()).records == records
     assert "tables_key" in read_index_header(cache)
+
+
+def test_a_cache_of_the_previous_format_is_rebuilt_quietly(root, tmp_path):
+    data = tmp_path / "tables"
+    shutil.copytree(root / VERSION, data / VERSION)
+    records = _dataset(data, cameras=()).records
+    cache = data / ".occkit" / f"occkit-index-{VERSION}-0.npz"
+    with np.load(cache) as npz:
+        arrays = {name: npz[name] for name in npz.files if name != "box_valid"}
+    header = json.loads(str(arrays["header"])) | {"format": "occkit-index/2"}  # its tables_key matched then
+    with open(cache, "wb") as stream:
+        np.savez(stream, **(arrays | {"header": np.array(json.dumps(header))}))
+    # Named explicitly, it is one line of error that says how to rebuild it.
+    with pytest.raises(OutdatedIndexError, match=r"occkit-index/2\); this occkit reads .* rebuild it with `occkit"):
+        _dataset(data, cameras=(), index=str(cache))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert _dataset(data, cameras=()).records == records
+    assert read_index_header(cache)["format"] == INDEX_FORMAT
 
 
 def test_the_json_cache_of_an_older_occkit_is_replaced(root, tmp_path):

@@ -26,6 +26,7 @@ from occkit.data.index import (
     FrameRecord,
     FrameRecords,
     IndexFormatError,
+    OutdatedIndexError,
     build_index,
     index_tables,
     load_index,
@@ -236,10 +237,34 @@ def test_box_labels_follow_the_annotations(root, records):
         annotations = [a for a in tables["sample_annotation"] if a["sample_token"] == record.token]
         assert list(record.box_instances) == [a["instance_token"] for a in annotations]
         assert record.box_num_lidar_pts.tolist() == [a["num_lidar_pts"] for a in annotations]
+        assert record.box_valid.tolist() == [a["num_lidar_pts"] + a["num_radar_pts"] > 0 for a in annotations]
         assert list(record.box_visibility) == [a["visibility_token"] for a in annotations]
         for category, name in zip(record.box_categories, record.box_detection_names, strict=True):
             assert name == NUSCENES_TO_DETECTION.get(category)
     assert {n for r in records for n in r.box_detection_names} >= {"car", "pedestrian", None}
+    # Boxes seen by a camera alone are annotated too: the world has boxes of both kinds.
+    assert {bool(v) for r in records for v in r.box_valid} == {True, False}
+
+
+def test_a_box_with_radar_points_only_is_valid(tables_copy, records):
+    """mmdetection3d's valid_flag counts LiDAR and radar points: (num_lidar_pts + num_radar_pts) > 0."""
+    rows = json.loads((tables_copy / VERSION / "sample_annotation.json").read_text())
+
+    def flags(built: list[FrameRecord]) -> dict[str, bool]:
+        """Annotation token -> box_valid: a record's boxes are its sample's annotations in table order."""
+        by_sample = defaultdict(list)
+        for row in rows:
+            by_sample[row["sample_token"]].append(row["token"])
+        return {token: bool(valid) for record in built
+                for token, valid in zip(by_sample[record.token], record.box_valid, strict=True)}  # fmt: skip
+
+    empty = next(row["token"] for row in rows if row["num_lidar_pts"] == 0)
+    seen = next(row["token"] for row in rows if row["num_lidar_pts"] > 0)
+    changes = {empty: {"num_radar_pts": 3}, seen: {"num_lidar_pts": 0, "num_radar_pts": 0}}
+    _edit(tables_copy, "sample_annotation", lambda table: [row.update(changes.get(row["token"], {})) for row in table])
+    before, after = flags(records), flags(build_index(tables_copy, VERSION))
+    assert not before[empty] and after[empty] and before[seen] and not after[seen]
+    assert {token for token in before if before[token] != after[token]} == {empty, seen}
 
 
 # ----------------------------------------------------------------------------------------------------- files
@@ -337,7 +362,7 @@ def test_save_index_needs_the_build_meta(records, tmp_path):
 def test_load_index_names_the_file_on_bad_input(records, tmp_path):
     path = tmp_path / "index.npz"
     path.write_text(json.dumps({"format": "mmdet3d-infos", "records": []}))
-    with pytest.raises(IndexFormatError, match=r"index\.npz: not an occkit index \(an occkit-index/2 \.npz file\)"):
+    with pytest.raises(IndexFormatError, match=r"index\.npz: not an occkit index \(an occkit-index/3 \.npz file\)"):
         load_index(path)
     save_index(records[:2], path, META)
     _write(path, _arrays(path) | {"header": np.array(json.dumps({"format": "mmdet3d-infos"}))})
@@ -394,12 +419,35 @@ def test_a_json_index_of_an_older_occkit_says_how_to_rebuild_it(tmp_path):
     path.write_text(json.dumps(header)[:-1] + ', "records": [\n\n]}\n')
     message = (
         rf"^{re.escape(str(path))}: a JSON index of an older occkit \(occkit-index/1\); this occkit reads "
-        r"occkit-index/2 \(\.npz\): rebuild it with `occkit index --root data/synth --version v1\.0-synth "
+        r"occkit-index/3 \(\.npz\): rebuild it with `occkit index --root data/synth --version v1\.0-synth "
         rf"--max-sweeps 3 --split val --out '{re.escape(str(path))}'`$"
     )
     for read in (load_index, read_index_header):
-        with pytest.raises(IndexFormatError, match=message):
+        with pytest.raises(OutdatedIndexError, match=message):
             read(path)
+
+
+def test_an_index_of_format_2_says_how_to_rebuild_it(records, tmp_path):
+    """Format 2 was a .npz as now, without box_valid: its header names the build to repeat."""
+    path = tmp_path / "index.npz"
+    meta = {"version": VERSION, "root": "data/synth", "max_sweeps": 4, "from_info": "infos val.pkl"}
+    arrays = _arrays(save_index(records[:2], path, meta))
+    header = json.loads(str(arrays["header"])) | {"format": "occkit-index/2"}
+    del arrays["box_valid"]
+    _write(path, arrays | {"header": np.array(json.dumps(header))})
+    message = (
+        rf"^{re.escape(str(path))}: an index of an older occkit \(occkit-index/2\); this occkit reads "
+        r"occkit-index/3 \(\.npz\): rebuild it with `occkit index --root data/synth --version v1\.0-synth "
+        rf"--max-sweeps 4 --from-info 'infos val\.pkl' --trust-pickle --out {re.escape(str(path))}`$"
+    )
+    for read in (load_index, read_index_header):
+        with pytest.raises(OutdatedIndexError, match=message):
+            read(path)
+    # A format that no occkit wrote is no older index.
+    _write(path, arrays | {"header": np.array(json.dumps(header | {"format": "occkit-index/9"}))})
+    with pytest.raises(IndexFormatError, match=r"not an occkit index \(format 'occkit-index/9', expected") as error:
+        load_index(path)
+    assert not isinstance(error.value, OutdatedIndexError)
 
 
 # ----------------------------------------------------------------------------------------------------- fuzz
@@ -815,6 +863,8 @@ def test_quaternions_of_other_norms_are_normalised(tables_copy, records):
         ("sample_annotation", "size", [1.0, 2.0, [3.0]], "a list of 3 finite numbers"),
         ("sample_annotation", "num_lidar_pts", "12", "an integer"),
         ("sample_annotation", "num_lidar_pts", -1, "a count >= 0"),
+        ("sample_annotation", "num_radar_pts", 2.0, "an integer"),
+        ("sample_annotation", "num_radar_pts", -3, "a count >= 0"),
         ("sample_annotation", "visibility_token", 4, "a string"),
         ("sample_data", "timestamp", "1700000000500000", "an integer"),
         ("sample_data", "width", 1600.0, "an integer"),
@@ -867,8 +917,8 @@ def test_read_index_header(records, tmp_path):
     # The header alone is read: a damaged column does not stop it.
     _write(path, _arrays(path) | {"boxes_ego": np.zeros(3)})
     assert read_index_header(path)["max_sweeps"] == 3
-    path.write_text('{"format": "occkit-index/2", "records": []}')
-    with pytest.raises(IndexFormatError, match=r"index\.npz: not an occkit index \(an occkit-index/2 \.npz file\)"):
+    path.write_text('{"format": "occkit-index/3", "records": []}')
+    with pytest.raises(IndexFormatError, match=r"index\.npz: not an occkit index \(an occkit-index/3 \.npz file\)"):
         read_index_header(path)
 
 

@@ -186,12 +186,13 @@ def _v2_infos(bevdet: dict, flashocc_keys: bool) -> dict:
                     "bbox_label_3d": _v2_label(name),
                     "velocity": velocity.tolist(),
                     "num_lidar_pts": points,
-                    "num_radar_pts": 0,
-                    "bbox_3d_isvalid": bool(points > 0),
+                    "num_radar_pts": radar,
+                    "bbox_3d_isvalid": valid,  # numpy's bool, as the writer indexes valid_flag
                 }
-                for box, name, velocity, points in zip(
-                    info["gt_boxes"], info["gt_names"], info["gt_velocity"], info["num_lidar_pts"], strict=True
-                )
+                for box, name, velocity, points, radar, valid in zip(
+                    info["gt_boxes"], info["gt_names"], info["gt_velocity"], info["num_lidar_pts"],
+                    info["num_radar_pts"], info["valid_flag"], strict=True,
+                )  # fmt: skip
             ],
             "cam_instances": {},
         }
@@ -267,6 +268,46 @@ def test_mmdet3d_v2_infos_give_the_index_records(root, records, bevdet, tmp_path
     data = _v2_infos(bevdet, flashocc_keys)
     imported = import_info_file(_dump(data, tmp_path / "v2.pkl"), root, VERSION, trust_pickle=True)
     _assert_records(imported, [_expected(r, IGNORED_CATEGORY, scene=flashocc_keys) for r in records])
+
+
+def test_valid_flags_come_from_the_file_or_from_the_lidar_points(root, bevdet):
+    """``valid_flag`` / ``bbox_3d_isvalid`` are mmdetection3d's ``(num_lidar_pts + num_radar_pts) > 0``, taken as the
+    file has them; a file without them gets ``num_lidar_pts > 0``."""
+    data = copy.deepcopy(bevdet)
+    first = data["infos"][0]
+    # Box 0 seen by radar alone: valid by the file's flag, not by its LiDAR points.
+    first["num_lidar_pts"][0], first["num_radar_pts"][0], first["valid_flag"][0] = 0, 5, True
+    flags = [info["valid_flag"].tolist() for info in data["infos"]]
+    lidar = [(info["num_lidar_pts"] > 0).tolist() for info in data["infos"]]
+    assert flags != lidar and {flag for row in flags for flag in row} == {True, False}
+    v2 = _v2_infos(data, flashocc_keys=True)
+    for layout in (data, v2):
+        assert [record.box_valid.tolist() for record in convert_infos(layout, root)] == flags
+    for info in data["infos"]:
+        del info["valid_flag"]
+    for entry in v2["data_list"]:
+        for instance in entry["instances"]:
+            del instance["bbox_3d_isvalid"]
+    for layout in (data, v2):
+        assert [record.box_valid.tolist() for record in convert_infos(layout, root)] == lidar
+
+
+@pytest.mark.parametrize(
+    "layout, edit, message",
+    [
+        ("bevdet", lambda entry: entry.update(valid_flag=np.ones(len(entry["gt_boxes"]), dtype=np.int64)),
+         r"\.valid_flag: expected booleans of shape \(\d+\), got int64"),
+        ("bevdet", lambda entry: entry.update(valid_flag=entry["valid_flag"][:-1]),
+         r"\.valid_flag: expected booleans of shape \(\d+\), got bool of shape"),
+        ("mmdet3d-v2", lambda entry: entry["instances"][2].update(bbox_3d_isvalid=1),
+         r"\.instances\[2\]\.bbox_3d_isvalid: expected booleans of shape \(\), got int64"),
+    ],
+)  # fmt: skip
+def test_bad_valid_flags_name_the_entry_and_key(root, bevdet, layout, edit, message):
+    data = copy.deepcopy(bevdet) if layout == "bevdet" else _v2_infos(bevdet, flashocc_keys=True)
+    edit((data["infos"] if layout == "bevdet" else data["data_list"])[1])
+    with pytest.raises(InfoFileError, match=r"^info file: entry 1 \(token '\w+'\)" + message):
+        convert_infos(data, root)
 
 
 def test_mmdet3d_v2_float32_matrices_stay_close(root, records, bevdet):

@@ -37,7 +37,6 @@ import torch
 from conftest import torch_threads
 
 from occkit.engine.checkpoint import atomic_save, latest_checkpoint, load_checkpoint, save_checkpoint
-from occkit.engine.train import lr_factor
 from occkit.sim.generate import SimConfig, simulate_dataset
 from occkit.zoo import load_experiment
 
@@ -224,10 +223,12 @@ def _kill_and_resume(data: Path, folder: Path, extra: tuple[str, ...], kills_aft
             "seconds": time.perf_counter() - started}  # fmt: skip
 
 
-#: The run killed and resumed: 12 steps of 2 accumulated batches read by a DataLoader worker, a checkpoint every 2
-#: steps and a log row every 3 (so a checkpoint falls between two rows), EMA, validation every epoch (2 steps).
+#: The run killed and resumed: 12 steps of 2 accumulated batches read by a DataLoader worker in CBGS order, a
+#: checkpoint every 2 steps and a log row every 3 (so a checkpoint falls between two rows), a ramped EMA, a per-epoch
+#: cosine, validation every epoch.
 RESUMED_RUN = ("train.max_steps=12", "train.accumulate=2", "train.workers=1", "train.checkpoint_every=2",
-               "train.log_every=3", "train.ema_decay=0.9", "train.val_every=1")  # fmt: skip
+               "train.log_every=3", "train.ema_decay=0.9", "train.ema_ramp=4", "train.val_every=1",
+               "train.sampler=cbgs", "train.lr_by_epoch=true", "data.valid_boxes_only=true")  # fmt: skip
 
 
 @pytest.fixture(scope="session")
@@ -236,21 +237,6 @@ def resumed(data, tmp_path_factory) -> dict:
     rng = random.Random(KILL_SEED)
     kills_after = [rng.randint(3, 5), rng.randint(2, 3)]  # after the row of step 3 or 6, then of step 6 or 9
     return _kill_and_resume(data, tmp_path_factory.mktemp("resume"), RESUMED_RUN, kills_after, KILL_SEED)
-
-
-# ------------------------------------------------------------------------------------------------------ schedule
-def test_lr_factor_warmup_then_cosine():
-    total, warmup, start, end = 100, 10, 0.25, 0.01
-    factors = [lr_factor(step, total, warmup, start, end) for step in range(total + 1)]
-    assert factors[0] == pytest.approx(start)
-    assert factors[5] == pytest.approx(start + (1 - start) * 0.5)
-    assert factors[warmup] == pytest.approx(1.0) and max(factors) == pytest.approx(1.0)
-    assert all(b > a for a, b in zip(factors[:warmup], factors[1 : warmup + 1], strict=True))  # rising warm-up
-    assert all(b <= a for a, b in zip(factors[warmup:-1], factors[warmup + 1 :], strict=True))  # falling cosine
-    assert factors[55] == pytest.approx(end + (1 - end) * 0.5)  # half-way through the cosine
-    assert factors[total] == pytest.approx(end)
-    assert lr_factor(total + 50, total, warmup, start, end) == pytest.approx(end)  # stays at the floor
-    assert lr_factor(0, total, 0, start, end) == pytest.approx(1.0)  # no warm-up: starts at the peak
 
 
 # ------------------------------------------------------------------------------------------------------ checkpoints

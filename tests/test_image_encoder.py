@@ -1,10 +1,9 @@
-"""Image encoder: ResNet stages, LSS-FPN shapes, frozen statistics and stages, local pretrained weights."""
+"""Image encoder: ResNet stages, LSS-FPN shapes, frozen statistics and stages (weights: test_pretrained.py)."""
 
 from __future__ import annotations
 
 import pytest
 import torch
-import torchvision
 
 from occkit.models.complexity import count_parameters
 from occkit.models.image_encoder import ImageEncoder, ImageEncoderConfig, ResNetBackbone
@@ -46,19 +45,6 @@ def test_frozen_stages_have_no_trainable_parameters():
     assert not any(p.requires_grad for p in backbone.stem.parameters())
     assert not any(p.requires_grad for p in backbone.stages[0].parameters())
     assert all(p.requires_grad for p in backbone.stages[1].parameters())
-
-
-def test_pretrained_weights_load_from_a_local_file(tmp_path):
-    reference = torchvision.models.resnet18(weights=None)
-    path = tmp_path / "resnet18.pth"
-    torch.save(reference.state_dict(), path)
-    backbone = ResNetBackbone(ImageEncoderConfig(depth=18, pretrained=str(path)))
-    torch.testing.assert_close(backbone.stages[3][1].conv2.weight, reference.layer4[1].conv2.weight)
-
-    with pytest.raises(ValueError, match="does not match a ResNet-50"):
-        ResNetBackbone(ImageEncoderConfig(depth=50, pretrained=str(path)))
-    with pytest.raises(FileNotFoundError, match="missing.pth"):
-        ResNetBackbone(ImageEncoderConfig(depth=18, pretrained=str(tmp_path / "missing.pth")))
 
 
 def test_bad_depth_is_a_clear_error():

@@ -19,7 +19,7 @@ PACKAGE = Path(__file__).resolve().parents[1] / "occkit"
 LAYERS: tuple[tuple[str, ...], ...] = (
     # plain values, shapes and the geometry every other layer computes with
     ("occkit.errors", "occkit.config", "occkit.classes", "occkit.types", "occkit.geometry", "occkit.label_space",
-     "occkit.arguments", "occkit.nuscenes", "occkit.figure"),
+     "occkit.arguments", "occkit.nuscenes", "occkit.figure", "occkit.weight_files"),
     # reading and writing datasets; the synthetic world writes what data reads, importing nothing of it
     ("occkit.data", "occkit.sim"),
     # what an experiment is: plain settings, no model code
@@ -27,8 +27,8 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     # what a model is scored and trained against
     ("occkit.losses", "occkit.metrics"),
     ("occkit.models",),
-    # names -> experiments and models
-    ("occkit.zoo",),
+    # names -> experiments and models; reference checkpoints -> an entry's weights (the engine's load_from uses it)
+    ("occkit.zoo", "occkit.convert"),
     # training, evaluation, prediction
     ("occkit.engine",),
     # consumers of trained models

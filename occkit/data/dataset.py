@@ -12,6 +12,7 @@ Augmentation draws are seeded by ``(seed, epoch, index)``: a run is reproducible
 from __future__ import annotations
 
 import contextlib
+import itertools
 import logging
 import os
 import warnings
@@ -26,7 +27,15 @@ from PIL import Image
 from torch import Tensor
 
 from occkit.classes import DETECTION_CLASSES
-from occkit.data.index import FrameRecord, build_index, load_index, read_index_header, save_index, tables_key
+from occkit.data.index import (
+    FrameRecord,
+    OutdatedIndexError,
+    build_index,
+    load_index,
+    read_index_header,
+    save_index,
+    tables_key,
+)
 from occkit.data.labels import LabelError, label_file, read_labels
 from occkit.data.lidar_maps import depth_map, height_map
 from occkit.data.splits import split_scenes
@@ -88,6 +97,9 @@ class DatasetConfig:
     """Folder of the label files; None: the label space's folder under ``root`` (``gts``, ``surroundocc``)."""
     boxes: bool = True
     """Load the 3D boxes of the detection classes."""
+    valid_boxes_only: bool = False
+    """Keep only boxes with at least one LiDAR or radar point as targets, as mmdet3d's use_valid_flag (DAOcc,
+    FlashOcc). It applies to the boxes of a sample and to :meth:`OccupancyDataset.sample_classes` (CBGS)."""
     augment: bool = False
     """Random image and BEV augmentation (training); off gives the deterministic test transform."""
     image_aug: ImageAugConfig = field(default_factory=ImageAugConfig)
@@ -209,6 +221,26 @@ class OccupancyDataset(torch.utils.data.Dataset):
                 cache.with_suffix(".json").unlink(missing_ok=True)
             break
         return records
+
+    def sample_classes(self) -> list[frozenset[str]]:
+        """The detection classes (:data:`~occkit.classes.DETECTION_CLASSES`) among each sample's boxes, as
+        mmdetection3d's ``NuScenesDataset.get_cat_ids``: with ``valid_boxes_only``, of the boxes with a LiDAR or
+        radar point only (its ``use_valid_flag``). What CBGS balances (:func:`occkit.data.sampling.cbgs_indices`).
+
+        Read from the index records alone, no sensor or label file: about 0.1 s for 28,130 samples of 40 boxes
+        (trainval's training split).
+
+        Returns:
+            ``len(self)`` sets, in sample order; empty for a sample without a box of a detection class.
+        """
+        valid_only = self.config.valid_boxes_only
+        classes = []
+        for record in self.records:
+            names = record.box_detection_names
+            if valid_only:
+                names = itertools.compress(names, record.box_valid.tolist())
+            classes.append(frozenset(names).difference((None,)))  # None: a category that is no detection target
+        return classes
 
     def set_epoch(self, epoch: int) -> None:
         """Change the augmentation draws (call once per epoch, as with a DistributedSampler)."""
@@ -338,7 +370,11 @@ class OccupancyDataset(torch.utils.data.Dataset):
         return key
 
     def _load_boxes(self, record: FrameRecord, sample: Sample) -> None:
-        keep = [i for i, name in enumerate(record.box_detection_names) if name is not None]
+        """``sample.boxes`` ``(M, 9)`` in the augmented LiDAR frame and ``sample.box_labels`` ``(M,)``: the boxes of
+        detection classes (with ``valid_boxes_only``, those with a LiDAR or radar point)."""
+        names, valid = record.box_detection_names, record.box_valid
+        only_valid = self.config.valid_boxes_only
+        keep = [i for i, name in enumerate(names) if name is not None and (valid[i] or not only_valid)]
         boxes = torch.from_numpy(np.asarray(record.boxes_lidar, dtype=np.float32)[keep].reshape(-1, 9))
         sample.boxes = augment_boxes(boxes, sample.bev_aug)
         sample.box_labels = torch.tensor(
@@ -373,13 +409,17 @@ def _slug(path: Path) -> str:
 
 def _read_cache(path: Path, key: str) -> Sequence[FrameRecord] | None:
     """The records of an index cache built from tables with ``key``; None if there is none, it is of other tables
-    (or parameters), or it is unreadable (then with a warning naming the file): the caller rebuilds it."""
+    (or parameters) or of an older occkit's format, or it is unreadable (then with a warning naming the file): the
+    caller rebuilds it."""
     try:
         if read_index_header(path).get("tables_key") != key:
             log.info("%s: built from other tables or settings; rebuilding it", path)
             return None
         return load_index(path)[0]
     except FileNotFoundError:
+        return None
+    except OutdatedIndexError:  # an older occkit's cache: expected after an upgrade, nothing is wrong with it
+        log.info("%s: an index of an older occkit's format; rebuilding it", path)
         return None
     except (OSError, ValueError) as error:  # IndexFormatError is a ValueError
         warnings.warn(f"{path}: unreadable index cache, rebuilding it ({error})", stacklevel=3)

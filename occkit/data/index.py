@@ -13,14 +13,16 @@ ego pose is the one at the LIDAR_TOP key-frame timestamp (the Occ3D label frame)
 * box velocities are nuscenes-devkit's ``box_velocity`` (global frame), rotated into the ego / LiDAR frame as
   ``get_sample_data`` rotates a box's velocity (mmdetection3d zeroes the global vz first; the two differ by the
   ego's pitch and roll times the vertical velocity, which is small on roads);
-* box yaw is pyquaternion's ``yaw_pitch_roll[0]`` of the box rotation in the frame, as both take it.
+* box yaw is pyquaternion's ``yaw_pitch_roll[0]`` of the box rotation in the frame, as both take it;
+* ``box_valid`` is mmdetection3d's ``valid_flag``, ``(num_lidar_pts + num_radar_pts) > 0``, which its
+  ``use_valid_flag`` training keeps as targets.
 
 Each field of the records is declared once, with its kind (a safe name, a relative path, an integer, a ``(4, 4)``
 matrix, one row per box, a table of sub-records, ...: the ``_Kind`` classes below). Everything else follows from
 these declarations: the checks of ``__post_init__``, the JSON form of a record (``to_dict`` / ``from_dict``) and the
 columns of the index file.
 
-An index file (format ``occkit-index/2``; docs/data.md lists every array) is a numpy ``.npz`` holding, per field, one
+An index file (format ``occkit-index/3``; docs/data.md lists every array) is a numpy ``.npz`` holding, per field, one
 array over all records: matrices stacked, box fields concatenated with per-record offsets, the sweeps and cameras as
 tables of their own with offsets, and every string as an int32 code into one UTF-8 string table; the header is a JSON
 string inside. :func:`load_index` checks every column when it reads a file and returns :class:`FrameRecords`, a
@@ -72,6 +74,7 @@ __all__ = [
     "INDEX_FORMAT",
     "BOX_COLUMNS",
     "IndexFormatError",
+    "OutdatedIndexError",
     "SweepRecord",
     "CameraRecord",
     "FrameRecord",
@@ -86,7 +89,7 @@ __all__ = [
 ]
 
 #: Value of the ``format`` key of index files.
-INDEX_FORMAT = "occkit-index/2"
+INDEX_FORMAT = "occkit-index/3"
 
 #: nuscenes-devkit's ``box_velocity`` default: neighbours further apart than this (s) give no velocity; twice
 #: this for a centred difference.
@@ -98,6 +101,11 @@ BOX_COLUMNS = ("x", "y", "z", "l", "w", "h", "yaw", "vx", "vy")
 
 class IndexFormatError(ValueError):
     """An index file or record dict is malformed; the message names the file, record and field."""
+
+
+class OutdatedIndexError(IndexFormatError):
+    """An index file of an older occkit's format (the JSON ``occkit-index/1``, the ``.npz`` of ``occkit-index/2``
+    without ``box_valid``); the message gives the ``occkit index`` command that rebuilds it."""
 
 
 # ----------------------------------------------------------------------------------------------------- field kinds
@@ -600,6 +608,10 @@ class FrameRecord(_Record):
     """Instance tokens (the same object across samples)."""
     box_num_lidar_pts: np.ndarray = _declare(_Counts())
     """``(N,)`` int64 LiDAR points inside each box."""
+    box_valid: np.ndarray = _declare(_Flags())
+    """``(N,)`` bool: mmdetection3d's ``valid_flag``, ``num_lidar_pts + num_radar_pts > 0``: the box holds at least
+    one LiDAR or radar point. Training with ``use_valid_flag`` (DAOcc, FlashOcc) keeps only these boxes as targets
+    (:attr:`occkit.data.dataset.DatasetConfig.valid_boxes_only`)."""
     box_visibility: tuple[str, ...] = _declare(_Texts())
     """nuScenes visibility tokens, ``"1"`` (0-40% visible) to ``"4"`` (80-100%)."""
     occ_path: str | None = _declare(_Path(optional=True))
@@ -994,9 +1006,9 @@ class _IndexBuilder:
         for annotation in annotations:
             self._text("sample_annotation", annotation, "instance_token")
             self._text("sample_annotation", annotation, "visibility_token")
-            if (count := self._integer("sample_annotation", annotation, "num_lidar_pts")) < 0:
-                message = f"expected a count >= 0, got {count}"
-                raise self._error("sample_annotation", annotation, "num_lidar_pts", message)
+            for field in ("num_lidar_pts", "num_radar_pts"):
+                if (count := self._integer("sample_annotation", annotation, field)) < 0:
+                    raise self._error("sample_annotation", annotation, field, f"expected a count >= 0, got {count}")
         boxes_ego, boxes_lidar, valid = self._boxes(annotations, global2ego, ego2lidar)
         categories = tuple(self._category(a) for a in annotations)
         return FrameRecord(
@@ -1019,6 +1031,8 @@ class _IndexBuilder:
             box_detection_names=tuple(self._detection_name(c) for c in categories),
             box_instances=tuple(a["instance_token"] for a in annotations),
             box_num_lidar_pts=[a["num_lidar_pts"] for a in annotations],
+            # mmdetection3d's valid_flag (create_nuscenes_infos): a box that some LiDAR or radar return hit.
+            box_valid=[a["num_lidar_pts"] + a["num_radar_pts"] > 0 for a in annotations],
             box_visibility=tuple(a["visibility_token"] for a in annotations),
             occ_path=f"gts/{scene['name']}/{sample['token']}/labels.npz" if labelled else None,
         )
@@ -1272,7 +1286,8 @@ _REQUIRED_META = ("version", "root", "max_sweeps")
 #: What reading a damaged ``.npz`` can raise (zipfile and numpy's format reader).
 _READ_ERRORS = (OSError, ValueError, EOFError, KeyError, NotImplementedError, zipfile.BadZipFile, zlib.error)
 
-#: The first bytes of a zip file, and of the JSON index files of occkit before format 2 (header first).
+#: The first bytes of a zip file, and of the JSON index files of format 1 (header first); format 2 was a ``.npz``
+#: as now, without ``box_valid`` (its header says so).
 _ZIP_MAGIC = b"PK\x03\x04"
 _JSON_INDEX_START = b'{"format": "occkit-index/1"'
 
@@ -1347,9 +1362,11 @@ def load_index(path: str | Path) -> tuple[FrameRecords, dict[str, Any]]:
 
     Raises:
         FileNotFoundError: no such file.
-        IndexFormatError: not an occkit index of this format (a JSON index of an older occkit: the message says how
-            to rebuild it), a damaged file, or a malformed column (an unsafe name or path among them, see
-            :mod:`occkit.data.names`); the message names the file and, for a value, the record and field.
+        OutdatedIndexError: an index of an older occkit's format (JSON ``occkit-index/1``, ``occkit-index/2``);
+            the message gives the ``occkit index`` command that rebuilds it.
+        IndexFormatError: not an occkit index of this format, a damaged file, or a malformed column (an unsafe
+            name or path among them, see :mod:`occkit.data.names`); the message names the file and, for a value,
+            the record and field.
     """
     path = Path(path)
     with _open_index(path) as npz:
@@ -1377,7 +1394,8 @@ def read_index_header(path: str | Path) -> dict[str, Any]:
 
     Raises:
         FileNotFoundError: no such file.
-        IndexFormatError: no occkit index of this format (see :func:`load_index`).
+        IndexFormatError: no occkit index of this format; :class:`OutdatedIndexError` for an older occkit's (see
+            :func:`load_index`).
     """
     path = Path(path)
     with _open_index(path) as npz:
@@ -1390,7 +1408,8 @@ def _open_index(path: Path) -> np.lib.npyio.NpzFile:
         with open(path, "rb") as stream:
             start = stream.read(len(_JSON_INDEX_START))
             if start == _JSON_INDEX_START:
-                raise IndexFormatError(f"{path}: {_rebuild_hint(path, start + stream.readline(1 << 20))}")
+                header = _json_header(start + stream.readline(1 << 20))
+                raise OutdatedIndexError(f"{path}: {_rebuild_hint(path, header, 1)}")
     except FileNotFoundError:
         raise FileNotFoundError(f"index file {path} does not exist") from None
     if not start.startswith(_ZIP_MAGIC):
@@ -1401,20 +1420,37 @@ def _open_index(path: Path) -> np.lib.npyio.NpzFile:
         raise IndexFormatError(f"{path}: damaged index file ({type(error).__name__}: {error})") from None
 
 
-def _rebuild_hint(path: Path, first_line: bytes) -> str:
-    """What to say of a JSON index (``occkit-index/1``, header on its first line): the command that rebuilds it."""
+def _json_header(first_line: bytes) -> dict[str, Any]:
+    """The header of a JSON index (``occkit-index/1``), which its first line holds before the records; ``{}`` if
+    it does not read."""
     try:
         header = json.loads(first_line.decode("utf-8").rstrip()[: -len(', "records": [')] + "}")
     except (UnicodeDecodeError, json.JSONDecodeError):
-        header = {}
+        return {}
+    return header if isinstance(header, dict) else {}
+
+
+def _older_format(found: Any) -> int | None:
+    """The number of an older occkit's index format ``found`` (``occkit-index/<n>``), else None."""
+    prefix, _, current = INDEX_FORMAT.rpartition("/")
+    if isinstance(found, str) and found.startswith(prefix + "/") and found[len(prefix) + 1 :].isdigit():
+        number = int(found[len(prefix) + 1 :])
+        return number if number < int(current) else None
+    return None
+
+
+def _rebuild_hint(path: Path, header: Mapping[str, Any], number: int) -> str:
+    """What to say of an index of the older format ``occkit-index/<number>``: the command that rebuilds it from
+    what its header recorded (root, version, max_sweeps, split, info file)."""
     command = ["occkit", "index", "--root", str(header.get("root", "ROOT")), "--version",
                str(header.get("version", "VERSION")), "--max-sweeps", str(header.get("max_sweeps", 10))]  # fmt: skip
     if header.get("split", "all") != "all":
         command += ["--split", str(header["split"])]
     if "from_info" in header:
         command += ["--from-info", str(header["from_info"]), "--trust-pickle"]
+    what = "a JSON index" if number == 1 else "an index"
     return (
-        f"a JSON index of an older occkit (occkit-index/1); this occkit reads {INDEX_FORMAT} (.npz): rebuild it "
+        f"{what} of an older occkit (occkit-index/{number}); this occkit reads {INDEX_FORMAT} (.npz): rebuild it "
         f"with `{shlex.join([*command, '--out', str(path)])}`"
     )
 
@@ -1426,6 +1462,9 @@ def _header(path: Path, npz: np.lib.npyio.NpzFile) -> dict[str, Any]:
         header = None
     found = header.get("format") if isinstance(header, dict) else None
     if found != INDEX_FORMAT:
+        number = _older_format(found)
+        if number is not None:
+            raise OutdatedIndexError(f"{path}: {_rebuild_hint(path, header, number)}")
         raise IndexFormatError(f"{path}: not an occkit index (format {found!r}, expected {INDEX_FORMAT!r})")
     return header
 

@@ -51,6 +51,10 @@ get these defaults:
   file is missing;
 * no ``gt_boxes`` (test split) or ``instances``: no boxes; box instance and visibility tokens: ``""``; box categories:
   the nuScenes category where the file has it, else the detection class, else ``"ignore"`` (v2 label -1);
+* ``box_valid`` (mmdetection3d's ``valid_flag``, ``num_lidar_pts + num_radar_pts > 0``): the file's ``valid_flag``
+  (first layout) or each instance's ``bbox_3d_isvalid`` (v2, which ``update_infos_to_v2`` copies from
+  ``valid_flag``); where a file lacks it, ``num_lidar_pts > 0`` (radar counts are not read: the writers that keep
+  them keep the flag too);
 * v2 without ``lidar_sweeps`` (the writer drops empty lists): no sweeps; without ``metainfo.categories``:
   mmdetection3d's nuScenes class order (:data:`MMDET3D_NUSCENES_CLASSES`).
 
@@ -204,6 +208,15 @@ class _Fields:
             wanted = str(tuple("N" if n == -1 else n for n in shape)).replace("'", "")
             got = "values that are not numbers" if array is None else f"shape {array.shape}"
             raise self.error(key, f"expected {'finite ' if finite else ''}numbers of shape {wanted}, got {got}")
+        return array
+
+    def flags(self, key: str, shape: tuple[int, ...]) -> np.ndarray:
+        """``key`` as bool of ``shape`` (a numpy bool array, a list of bools or one bool): integers are refused, a
+        count where a flag belongs is a writer's mistake, not a flag."""
+        array = np.asarray(self[key])
+        if array.dtype != np.bool_ or array.shape != shape:
+            wanted = str(shape).replace(",)", ")")
+            raise self.error(key, f"expected booleans of shape {wanted}, got {array.dtype} of shape {array.shape}")
         return array
 
     def pose(self, rotation: str, translation: str) -> np.ndarray:
@@ -388,9 +401,10 @@ def _bevdet_frame(entry: _Fields, root: Path, prefixes: tuple[str, ...], sizes: 
 
 
 def _bevdet_boxes(entry: _Fields, lidar2ego: np.ndarray) -> dict[str, Any]:
-    """Box fields from ``gt_boxes``, ``gt_velocity``, ``gt_names`` and ``num_lidar_pts`` (none without them)."""
+    """Box fields from ``gt_boxes``, ``gt_velocity``, ``gt_names``, ``num_lidar_pts`` and ``valid_flag`` (none
+    without them; ``num_lidar_pts > 0`` without ``valid_flag``)."""
     if "gt_boxes" not in entry:  # test-split infos carry no annotations
-        return _box_fields(np.zeros((0, 7)), np.zeros((0, 2)), [], [], lidar2ego)
+        return _box_fields(np.zeros((0, 7)), np.zeros((0, 2)), [], [], [], lidar2ego)
     boxes = entry.array("gt_boxes", (-1, 7))
     count = len(boxes)
     velocity = entry.array("gt_velocity", (count, 2), finite=False)
@@ -402,7 +416,8 @@ def _bevdet_boxes(entry: _Fields, lidar2ego: np.ndarray) -> dict[str, Any]:
     if len(names) != count:
         raise entry.error("gt_names", f"expected {count} names (one per gt_boxes row), got {len(names)}")
     classes = [_class_names(name, entry, f"gt_names[{i}]") for i, name in enumerate(names)]
-    return _box_fields(boxes, velocity, classes, points.astype(np.int64).tolist(), lidar2ego)
+    valid = entry.flags("valid_flag", (count,)) if "valid_flag" in entry else points > 0
+    return _box_fields(boxes, velocity, classes, points.astype(np.int64).tolist(), valid.tolist(), lidar2ego)
 
 
 def _box_fields(
@@ -410,8 +425,11 @@ def _box_fields(
     velocity: np.ndarray,
     classes: list[tuple[str, str | None]],
     points: list[int],
+    valid: list[bool],
     lidar2ego: np.ndarray,
 ) -> dict[str, Any]:
+    """The box fields of a record from ``N`` boxes: ``(N, 7)`` LiDAR-frame boxes, ``(N, 2)`` velocities (NaN: none),
+    ``N`` (category, detection class) pairs, LiDAR point counts and valid flags."""
     count = len(boxes)
     return {
         **_boxes(boxes, velocity, lidar2ego),
@@ -419,6 +437,7 @@ def _box_fields(
         "box_detection_names": [name for _, name in classes],
         "box_instances": [""] * count,
         "box_num_lidar_pts": points,
+        "box_valid": valid,
         "box_visibility": [""] * count,
     }
 
@@ -505,7 +524,11 @@ def _v2_boxes(entry: _Fields, lidar2ego: np.ndarray, classes: dict[int, str]) ->
         else:
             raise instance.error("bbox_label_3d", f"label {label!r} is not among the categories {classes}")
     points = [int(instance.array("num_lidar_pts", ())) for instance in instances]
-    return _box_fields(boxes, velocity, names, points, lidar2ego)
+    valid = [
+        bool(instance.flags("bbox_3d_isvalid", ())) if "bbox_3d_isvalid" in instance else count > 0
+        for instance, count in zip(instances, points, strict=True)
+    ]
+    return _box_fields(boxes, velocity, names, points, valid, lidar2ego)
 
 
 def _v2_classes(metainfo: _Fields) -> dict[int, str]:

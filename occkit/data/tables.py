@@ -58,6 +58,7 @@ REQUIRED_FIELDS: dict[str, tuple[str, ...]] = {
         "prev",
         "next",
         "num_lidar_pts",
+        "num_radar_pts",
     ),
     "map": ("token",),
 }

@@ -7,8 +7,9 @@ runs as a group of one without initialising anything.
 
 from __future__ import annotations
 
+import operator
 import os
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -119,33 +120,65 @@ def all_reduce_mean(values: dict[str, float], device: torch.device) -> dict[str,
 class EpochSampler(torch.utils.data.Sampler[int]):
     """Deterministic per-epoch order, sharded over ranks, that can start part-way through an epoch.
 
-    Training: a permutation seeded by ``(seed, epoch)``, cut to a whole number of global batches (every rank takes
-    the same number of steps), rank ``r`` taking every ``world``-th index from ``r``; ``skip_batches`` drops the
-    first batches of this rank's share, so a resumed run continues exactly where it stopped. Evaluation
-    (``shuffle=False``): every index once, in order, split over ranks without padding.
+    Training: a permutation of the population (the dataset's indices ``0..size-1``, or a resampled list of them
+    such as CBGS's, :func:`occkit.data.sampling.cbgs_indices`) seeded by ``(seed, epoch)``, cut to a whole number
+    of global batches (every rank takes the same number of steps), rank ``r`` taking every ``world``-th item from
+    ``r``; ``skip_batches`` drops the first batches of this rank's share, so a resumed run continues exactly where it
+    stopped. Evaluation (``shuffle=False``): every item of the population once, in order, split over ranks without
+    padding.
     """
 
     def __init__(self, size: int, batch_size: int, rank: int = 0, world_size: int = 1, shuffle: bool = True,
-                 seed: int = 0) -> None:  # fmt: skip
+                 seed: int = 0, population: Sequence[int] | None = None) -> None:  # fmt: skip
+        """
+        Args:
+            size: samples in the dataset.
+            batch_size: samples per batch on each rank.
+            rank, world_size: this process and the number of processes.
+            shuffle: a new order every epoch (training), or the population in order (evaluation).
+            seed: seed of the orders.
+            population: the dataset indices an epoch runs over, repeats allowed (CBGS draws a sample once per class
+                it holds and more for rare classes); None: ``range(size)``, each sample once.
+
+        Raises:
+            ValueError: an item of ``population`` is not an index of the dataset.
+        """
         self.size, self.batch_size, self.rank, self.world_size = size, batch_size, rank, world_size
         self.shuffle, self.seed = shuffle, seed
+        self.population: list[int] | None = None
+        if population is not None:
+            items = [operator.index(i) for i in population]
+            outside = [i for i in items if not 0 <= i < size]
+            if outside:
+                raise ValueError(f"population holds {outside[0]}, not an index of a dataset of {size} samples")
+            self.population = items
         self.epoch, self.skip_batches = 0, 0
 
     def set_epoch(self, epoch: int, skip_batches: int = 0) -> None:
         self.epoch, self.skip_batches = epoch, skip_batches
 
+    def _count(self) -> int:
+        """Items in one epoch's population."""
+        return self.size if self.population is None else len(self.population)
+
     def _indices(self) -> list[int]:
         if not self.shuffle:
-            return list(range(self.rank, self.size, self.world_size))
+            if self.population is None:
+                return list(range(self.rank, self.size, self.world_size))
+            return self.population[self.rank :: self.world_size]
         generator = torch.Generator().manual_seed(self.seed * 1_000_003 + self.epoch)
-        order = torch.randperm(self.size, generator=generator).tolist()
+        order = torch.randperm(self._count(), generator=generator).tolist()
+        if self.population is not None:
+            # The same permutation as without a population, applied to its items: an epoch of CBGS is its
+            # resampled list shuffled, sharded and resumed as a plain epoch is.
+            order = [self.population[i] for i in order]
         global_batch = self.batch_size * self.world_size
         order = order[: len(order) // global_batch * global_batch]
         return order[self.rank :: self.world_size][self.skip_batches * self.batch_size :]
 
     def batches_per_epoch(self) -> int:
         """Full batches of one epoch on this rank (training order)."""
-        return self.size // (self.batch_size * self.world_size)
+        return self._count() // (self.batch_size * self.world_size)
 
     def __iter__(self) -> Iterator[int]:
         return iter(self._indices())

@@ -13,7 +13,6 @@ validation scores exactly the weights that are saved.
 from __future__ import annotations
 
 import copy
-import math
 import random
 import time
 from collections.abc import Callable, Sequence
@@ -26,8 +25,12 @@ import torch
 from torch import nn
 
 from occkit import zoo
+from occkit.classes import DETECTION_CLASSES
+from occkit.config import ConfigError
+from occkit.convert import load_partial
 from occkit.data.collate import collate
 from occkit.data.dataset import OccupancyDataset
+from occkit.data.sampling import cbgs_indices
 from occkit.engine import distributed
 from occkit.engine.checkpoint import (
     atomic_save,
@@ -41,11 +44,13 @@ from occkit.engine.checkpoint import (
 )
 from occkit.engine.evaluate import evaluate_model
 from occkit.engine.run_log import RunLog, plot_losses
-from occkit.experiment import Experiment, check_label_space, experiment_yaml
+from occkit.engine.schedule import Schedule
+from occkit.experiment import Experiment, TrainConfig, check_label_space, experiment_yaml
 from occkit.metrics.evaluate import plot_per_class_iou
+from occkit.models import pretrained
 from occkit.types import Batch
 
-__all__ = ["train", "ModelEMA", "lr_factor", "TrainResult", "check_output_folder"]
+__all__ = ["train", "ModelEMA", "TrainResult", "check_output_folder", "check_initial_weights", "accumulation"]
 
 
 @dataclass
@@ -62,27 +67,41 @@ class TrainResult:
 class ModelEMA:
     """Exponential moving average of a model's parameters (buffers copied), the weights validated and exported."""
 
-    def __init__(self, model: nn.Module, decay: float) -> None:
+    def __init__(self, model: nn.Module) -> None:
         self.module = copy.deepcopy(model).eval()
         for p in self.module.parameters():
             p.requires_grad_(False)
-        self.decay = decay
 
     @torch.no_grad()
-    def update(self, model: nn.Module) -> None:
+    def update(self, model: nn.Module, decay: float) -> None:
         for ema, current in zip(self.module.state_dict().values(), model.state_dict().values(), strict=True):
             if ema.dtype.is_floating_point:
-                ema.lerp_(current.detach(), 1.0 - self.decay)
+                ema.lerp_(current.detach(), 1.0 - decay)
             else:
                 ema.copy_(current)
 
 
-def lr_factor(step: int, total: int, warmup: int, warmup_ratio: float, min_ratio: float) -> float:
-    """Learning-rate multiplier: linear warm-up from ``warmup_ratio`` to 1, then cosine down to ``min_ratio``."""
-    if step < warmup:
-        return warmup_ratio + (1.0 - warmup_ratio) * step / warmup
-    progress = min(1.0, (step - warmup) / max(1, total - warmup))
-    return min_ratio + (1.0 - min_ratio) * 0.5 * (1.0 + math.cos(math.pi * progress))
+def accumulation(train: TrainConfig, world_size: int) -> int:
+    """Forward/backward passes per optimizer step: ``train.accumulate``, or what ``train.global_batch`` needs with
+    ``world_size`` processes of ``train.batch_size`` samples (the references' 8 GPUs x 4 samples on one GPU: 8)."""
+    if not train.global_batch:
+        return train.accumulate
+    per_pass = train.batch_size * world_size
+    if train.global_batch % per_pass:
+        raise ConfigError(f"train.global_batch {train.global_batch} is not a multiple of batch_size x processes = "
+                          f"{train.batch_size} x {world_size}: change the batch size or the number of processes")
+    return train.global_batch // per_pass
+
+
+def check_initial_weights(experiment: Experiment) -> None:
+    """Fail now, with one line naming the file and the setting, if a fresh run cannot get its initial weights: a
+    backbone's ``pretrained`` source (downloaded into its cache here when there is a network) or ``train.load_from``.
+    """
+    pretrained.ensure_available(experiment.model)
+    load_from = experiment.train.load_from
+    if load_from is not None and not Path(load_from).is_file():
+        raise FileNotFoundError(f"train.load_from = {load_from}: no such file (the whole-model weights this run "
+                                "starts from; set train.load_from=PATH, or null to start without them)")
 
 
 def check_output_folder(out: Path, resume: str | None) -> Path | None:
@@ -122,23 +141,41 @@ class _Trainer:
                     else [context.device]) if context.distributed else None)  # fmt: skip
         trainable = [p for p in model.parameters() if p.requires_grad]
         self.optimizer = torch.optim.AdamW(trainable, lr=cfg.lr, betas=cfg.betas, weight_decay=cfg.weight_decay)
-        self.ema = ModelEMA(model, cfg.ema_decay) if cfg.ema_decay > 0 else None
+        self.ema = ModelEMA(model) if cfg.ema_decay > 0 else None
         self.autocast = context.device.type == "cuda" and cfg.precision != "fp32"
         self.amp_dtype = torch.bfloat16 if cfg.precision == "bf16" else torch.float16
         self.scaler = torch.amp.GradScaler("cuda", enabled=self.autocast and cfg.precision == "fp16")
 
-        self.dataset = OccupancyDataset(replace(experiment.data, augment=experiment.data.augment))
+        self.accumulate = accumulation(cfg, context.world_size)
+        self.dataset = OccupancyDataset(experiment.data)
+        population = None
+        if cfg.sampler == "cbgs":
+            population = cbgs_indices(self.dataset.sample_classes(), DETECTION_CLASSES, cfg.seed)
         self.sampler = distributed.EpochSampler(len(self.dataset), cfg.batch_size, context.rank, context.world_size,
-                                                shuffle=True, seed=cfg.seed)  # fmt: skip
-        per_epoch = self.sampler.batches_per_epoch() // cfg.accumulate
+                                                shuffle=True, seed=cfg.seed, population=population)  # fmt: skip
+        per_epoch = self.sampler.batches_per_epoch() // self.accumulate
         if per_epoch < 1:
             raise ValueError(f"the training split has {len(self.dataset)} samples, fewer than one optimizer step of "
-                             f"{cfg.batch_size * context.world_size * cfg.accumulate}")
+                             f"{cfg.batch_size * context.world_size * self.accumulate}")
         self.steps_per_epoch = per_epoch
         self.total_steps = min(cfg.epochs * per_epoch, cfg.max_steps or cfg.epochs * per_epoch)
+        self.schedule = Schedule(cfg, self.total_steps, per_epoch)
         self.step, self.epoch, self.best_miou = 0, 0, None
         # Loss terms of the steps since the last log row: saved too, so a resumed run logs the same means.
         self.log_window: list[dict[str, float]] = []
+
+    def initialise(self) -> None:
+        """Initial weights of a fresh run: the backbones' pretrained weights, then ``train.load_from``."""
+        cfg = self.experiment.train
+        loaded = pretrained.initialise(self.model, whole_model_weights=cfg.load_from is not None)
+        if cfg.load_from is not None:
+            report = load_partial(self.model, cfg.load_from, self.experiment)
+            if self.context.is_main:
+                print(report)
+        if self.context.is_main and loaded:
+            print(f"initialised the image backbone from {', '.join(loaded)}")
+        if self.ema is not None:
+            self.ema.module.load_state_dict(self.model.state_dict())
 
     # ------------------------------------------------------------------------------------------ state
     def state(self) -> dict[str, Any]:
@@ -180,8 +217,7 @@ class _Trainer:
 
     # ------------------------------------------------------------------------------------------ steps
     def set_lr(self) -> float:
-        cfg = self.experiment.train
-        lr = cfg.lr * lr_factor(self.step, self.total_steps, cfg.warmup_steps, cfg.warmup_ratio, cfg.min_lr_ratio)
+        lr = self.schedule.lr(self.step)
         for group in self.optimizer.param_groups:
             group["lr"] = lr
         return lr
@@ -192,7 +228,7 @@ class _Trainer:
             output = network(batch)
             losses = self.model.loss(output, batch)
         total = sum(losses.values())
-        self.scaler.scale(total / self.experiment.train.accumulate).backward()
+        self.scaler.scale(total / self.accumulate).backward()
         values = {f"loss/{k}": float(v.detach()) for k, v in losses.items()}
         values["loss"] = float(total.detach())
         return values
@@ -211,7 +247,7 @@ class _Trainer:
             # EMA, the sharded validation and the saved weights are one and the same model on every rank.
             distributed.broadcast_tensors(list(self.model.buffers()))
         if self.ema is not None:
-            self.ema.update(self.model)
+            self.ema.update(self.model, self.schedule.ema_decay(self.step))
         self.step += 1
 
     def loader(self, skip_batches: int) -> torch.utils.data.DataLoader:
@@ -267,13 +303,19 @@ def train(
     out = Path(out)
     context = distributed.setup(device)
     try:
+        if resume is None:  # a missing weights file fails before any data is read or anything written
+            if context.is_main:  # rank 0 downloads into the cache; the others read it there
+                check_initial_weights(experiment)
+            distributed.barrier()
         start_from = check_output_folder(out, resume) if context.is_main else None
         start_from = distributed.broadcast_object(start_from)
         if context.is_main:
             ensure_writable(out)
         distributed.barrier()
         trainer = _Trainer(experiment, out, context)
-        if start_from is not None:
+        if start_from is None:
+            trainer.initialise()  # a missing pretrained file fails here, before the first step
+        else:
             # A checkpoint of another experiment fails here, before anything is written.
             changes = trainer.restore(start_from, allow_changes)
             if changes and context.is_main:
@@ -295,18 +337,19 @@ def _run(trainer: _Trainer, log: RunLog | None, progress: bool, on_step: Callabl
     cfg = trainer.experiment.train
     bar = _progress(trainer.context, trainer.total_steps, trainer.step, progress)
     metrics = None
-    samples_per_step = cfg.batch_size * cfg.accumulate * trainer.context.world_size
+    accumulate = trainer.accumulate
+    samples_per_step = cfg.batch_size * accumulate * trainer.context.world_size
     try:
         while trainer.step < trainer.total_steps:
             done_in_epoch = trainer.step - trainer.epoch * trainer.steps_per_epoch
             trainer.model.train()
             tick, window = time.perf_counter(), trainer.log_window
-            for index, batch in enumerate(trainer.loader(done_in_epoch * cfg.accumulate)):
-                if index // cfg.accumulate >= trainer.steps_per_epoch - done_in_epoch:
+            for index, batch in enumerate(trainer.loader(done_in_epoch * accumulate)):
+                if index // accumulate >= trainer.steps_per_epoch - done_in_epoch:
                     break
                 lr = trainer.set_lr()
                 window.append(trainer.forward_backward(batch.to(trainer.context.device)))
-                if (index + 1) % cfg.accumulate:
+                if (index + 1) % accumulate:
                     continue
                 trainer.optimizer_step()
                 rate = samples_per_step / max(time.perf_counter() - tick, 1e-9)

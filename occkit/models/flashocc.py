@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 from torch import Tensor
 
 from occkit.data.dataset import DatasetConfig
-from occkit.experiment import CPU_TRAIN, Experiment, TrainConfig, cpu_data
+from occkit.experiment import CPU_TRAIN, Experiment, TrainConfig, cpu_data, reproduces
 from occkit.label_space import OCC3D_SPACE
 from occkit.models.base import Architecture, OccupancyModel, camera_images
 from occkit.models.bev_encoder import BevEncoder, BevEncoderConfig
@@ -110,23 +110,39 @@ class FlashOcc(OccupancyModel):
 
 
 # ------------------------------------------------------------------------------------------------- zoo presets
-#: FlashOcc's schedule: AdamW 1e-4, gradient clip 5, 200 warm-up steps from 0.001 of the rate.
-TRAIN = TrainConfig(epochs=24, batch_size=4, lr=1e-4, grad_clip=5.0, warmup_steps=200, warmup_ratio=0.001)
+PAPER = "FlashOcc (Yu et al., 2023), Table 2 and its code's README"
+
+#: FlashOcc's schedule (its configs): AdamW 1e-4, weight decay 0.01, clip 5, 24 epochs at a global batch of 16, mmcv's
+#: step policy with ``step=[24]`` (constant after 200 warm-up steps from 0.001 of the rate), MEGVII EMA.
+TRAIN = TrainConfig(epochs=24, batch_size=4, global_batch=16, lr=1e-4, weight_decay=0.01, grad_clip=5.0,
+                    warmup_steps=200, warmup_ratio=0.001, lr_policy="step", lr_steps=(24,), ema_decay=0.999,
+                    ema_ramp=2000.0, ema_initial_updates=10560, load_from="ckpts/bevdet-r50-cbgs.pth")  # fmt: skip
 
 #: The paper's inputs: six cameras, no LiDAR.
 DATA = DatasetConfig(cameras=CAMERAS, sweeps=-1, boxes=False, augment=True, label_space=OCC3D_SPACE.name)
 
+#: torchvision's ImageNet ResNet-50 (mmcv's ``torchvision://resnet50``), under the BEVDet checkpoint FlashOcc loads.
+IMAGENET = "torchvision:IMAGENET1K_V1"
 
+
+def _paper_model() -> FlashOccConfig:
+    cfg = FlashOccConfig()
+    return dataclasses.replace(cfg, image=dataclasses.replace(cfg.image, pretrained=IMAGENET))
+
+
+@reproduces(PAPER, "M0: FlashOcc (1f), R50 256 x 704, with BEVDet detection pretraining, camera mask",
+            "31.95 mIoU, Occ3D-nuScenes val")
 def flashocc_m0() -> Experiment:
     """FlashOcc M0: ResNet-50 C4/C5 + FPN at 256 x 704, 44 depth bins, 64 x 200 x 200 BEV, 128-channel C2H head;
-    31.95 mIoU, 39.94 M parameters."""
-    return Experiment("flashocc", FlashOccConfig(), DATA, TRAIN)
+    39.94 M parameters; starts from BEVDet's detection checkpoint (bevdet-r50-cbgs.pth)."""
+    return Experiment("flashocc", _paper_model(), DATA, TRAIN)
 
 
+@reproduces(PAPER, "M1: FlashOcc (1f), R50 256 x 704, with BEVDet detection pretraining, camera mask",
+            "32.08 mIoU, Occ3D-nuScenes val")
 def flashocc_m1() -> Experiment:
-    """FlashOcc M1: M0 with 88 depth bins (0.5 m) and a 256-channel BEV neck and head; 32.08 mIoU, 44.74 M
-    parameters."""
-    cfg = FlashOccConfig()
+    """FlashOcc M1: M0 with 88 depth bins (0.5 m) and a 256-channel BEV neck and head; 44.74 M parameters."""
+    cfg = _paper_model()
     model = dataclasses.replace(
         cfg,
         lss=LSSConfig(depth_range=(1.0, 45.0, 0.5)),

@@ -8,13 +8,13 @@ Two necks, as the references use them:
 * ``fpn`` (FlashOcc, BEVDet's ``CustomFPN``): C4 + C5, 1x1 lateral convs, nearest-neighbour top-down addition and
   one 3x3 output conv (biases, no normalisation) on the finest level: 256 channels at stride 16 (16 x 44).
 
-Weights are never downloaded: ``pretrained`` names a local torchvision-format state dict when a user has one.
+``pretrained`` names the backbone's initial weights (a torchvision or timm source, or a local file; see
+:mod:`occkit.models.pretrained`); building never reads them, ``occkit.models.pretrained.initialise`` does.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Literal
 
 import torch
@@ -28,7 +28,6 @@ __all__ = [
     "LSSFPN",
     "FPN",
     "ImageEncoder",
-    "load_state_dict_file",
     "conv_bn_relu",
 ]
 
@@ -50,7 +49,9 @@ class ImageEncoderConfig:
     norm_eval: bool = True
     """Keep BatchNorm statistics frozen (eval mode) during training, as the references do for pretrained backbones."""
     pretrained: str | None = None
-    """Local torchvision-format ResNet state dict (``.pth`` or ``.safetensors``); None trains from scratch."""
+    """Initial weights: ``torchvision:IMAGENET1K_V1`` (torchvision's weights of this depth, downloaded into torch's
+    cache), ``timm:NAME``, or a local file (torchvision / timm state dict, ``.safetensors``, or an mmdet / mmdet3d
+    checkpoint whose backbone is picked out); None: random (then norm_eval and frozen_stages must be off)."""
     neck: Literal["lss_fpn", "fpn"] = "lss_fpn"
     """``lss_fpn``: concat + 1x1 + 3x3 with BatchNorm (DAOcc); ``fpn``: add + 3x3 without (FlashOcc, DA-Occ)."""
     neck_channels: int = 256
@@ -64,38 +65,6 @@ def conv_bn_relu(in_channels: int, out_channels: int, kernel_size: int, stride: 
         nn.BatchNorm2d(out_channels),
         nn.ReLU(inplace=True),
     )
-
-
-def load_state_dict_file(path: str | Path) -> dict[str, Tensor]:
-    """Tensors of a local ``.safetensors`` or ``.pth`` file, loaded without unpickling code."""
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"pretrained weights {path} do not exist")
-    if path.suffix == ".safetensors":
-        from safetensors.torch import load_file
-
-        return load_file(str(path))
-    state = torch.load(path, map_location="cpu", weights_only=True)
-    if isinstance(state, dict) and "state_dict" in state:
-        state = state["state_dict"]
-    if not isinstance(state, dict):
-        raise ValueError(f"{path} holds a {type(state).__name__}, not a state dict")
-    return state
-
-
-def _load_pretrained(net: nn.Module, path: str, name: str) -> None:
-    """Copy a local state dict into ``net`` (its classifier ignored); any other difference is an error."""
-    state = {k: v for k, v in load_state_dict_file(path).items() if not k.startswith("fc.")}
-    expected = {k: v.shape for k, v in net.state_dict().items() if not k.startswith("fc.")}
-    missing = sorted(expected.keys() - state.keys())
-    unexpected = sorted(state.keys() - expected.keys())
-    wrong = sorted(k for k in expected.keys() & state.keys() if state[k].shape != expected[k])
-    if missing or unexpected or wrong:
-        raise ValueError(
-            f"{path} does not match a {name}: missing {missing[:3]}, unexpected {unexpected[:3]}, "
-            f"wrong shapes {wrong[:3]}"
-        )
-    net.load_state_dict(state, strict=False)
 
 
 class ResNetBackbone(nn.Module):
@@ -117,8 +86,6 @@ class ResNetBackbone(nn.Module):
         if cfg.blocks:
             block = type(net.layer1[0])
             net = torchvision.models.ResNet(block, list(cfg.blocks))
-        if cfg.pretrained:
-            _load_pretrained(net, cfg.pretrained, f"ResNet-{cfg.depth}")
         self.stem = nn.Sequential(net.conv1, net.bn1, net.relu, net.maxpool)
         self.stages = nn.ModuleList([net.layer1, net.layer2, net.layer3, net.layer4][: max(cfg.out_stages)])
         self.out_stages = tuple(cfg.out_stages)
@@ -128,7 +95,33 @@ class ResNetBackbone(nn.Module):
         self.strides = tuple(2 ** (s + 1) for s in self.out_stages)
         self.norm_eval = cfg.norm_eval
         self.frozen_stages = cfg.frozen_stages
+        self.pretrained, self.depth = cfg.pretrained, cfg.depth
         self._freeze()
+
+    def load_torchvision_state(self, state: dict[str, Tensor], source: str) -> None:
+        """Copy torchvision-named ResNet weights (``conv1``, ``bn1``, ``layerK...``; no classifier) into the stages
+        this backbone keeps; deeper stages in ``state`` are ignored, any other difference is an error naming
+        ``source``."""
+        renamed = {}
+        for key, value in state.items():
+            head, _, rest = key.partition(".")
+            if head in ("conv1", "bn1"):
+                renamed[f"stem.{0 if head == 'conv1' else 1}.{rest}"] = value
+            elif head.startswith("layer") and head[5:].isdigit():
+                if int(head[5:]) <= len(self.stages):
+                    renamed[f"stages.{int(head[5:]) - 1}.{rest}"] = value
+            else:
+                renamed[key] = value
+        expected = {k: v.shape for k, v in self.state_dict().items()}
+        # torchvision's original files predate BatchNorm's num_batches_tracked counter: keep ours (0) then.
+        missing = sorted(k for k in expected.keys() - renamed.keys() if not k.endswith("num_batches_tracked"))
+        unexpected = sorted(renamed.keys() - expected.keys())
+        wrong = sorted(k for k in expected.keys() & renamed.keys() if renamed[k].shape != expected[k])
+        if missing or unexpected or wrong:
+            raise ValueError(f"{source} does not fit a ResNet-{self.depth} with blocks "
+                             f"{[len(stage) for stage in self.stages]}: missing {missing[:3]}, unexpected "
+                             f"{unexpected[:3]}, wrong shapes {wrong[:3]}")  # fmt: skip
+        self.load_state_dict(renamed, strict=False)
 
     def _freeze(self) -> None:
         frozen = [self.stem] * (self.frozen_stages >= 0) + list(self.stages[: max(self.frozen_stages, 0)])

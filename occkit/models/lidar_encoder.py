@@ -13,9 +13,9 @@ The design is BEVFusion's ``SparseEncoder`` with ``block_type="basicblock"`` as 
 
 Every tensor keeps occkit's ``(x, y, z)`` axis order (see :mod:`occkit.models.sparse`); BEV maps are ``(B, C, X, Y)``
 with dim 2 along x (forward) and dim 3 along y. Parameter names follow BEVFusion's (``conv_input.0``,
-``encoder_layers.encoder_layer1.0.conv1``, ``bn1``, ..., ``conv_out.0``) and spconv 2.x keeps the same weight layout
-``(out, kx, ky, kz, in)``, so a BEVFusion/DAOcc LiDAR state dict should map onto this module key for key (not yet
-checked against a released checkpoint).
+``encoder_layers.encoder_layer1.0.conv1``, ``bn1``, ..., ``conv_out.0``); the weights are spconv 2.x's
+``(out, kx, ky, kz, in)``, while DAOcc's checkpoints hold its bundled spconv 1.x's ``(kx, ky, kz, in, out)``, which
+``occkit convert`` permutes (:mod:`occkit.convert`).
 """
 
 from __future__ import annotations

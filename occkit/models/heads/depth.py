@@ -4,7 +4,9 @@ Camera awareness (BEVDepth): the 27 camera parameters of each image (intrinsics,
 camera -> ego) are batch-normalised, mapped by two MLPs to channel gates (squeeze-and-excitation) for the depth and
 the context branch. Depth branch: residual blocks, ASPP and a 1x1 conv to the bins. DA-Occ's HeightNet is the same
 network predicting height bins, with its last two residual blocks replaced by two vertical direction-aware
-convolutions (DAC along the image rows, the direction in which height varies).
+convolutions (DAC down each image column, the direction in which height varies); ``dac_blocks = 0`` puts the residual
+blocks back, the paper's ablation without them. DA-Occ's single-frame model lifts with FlashOcc's 1x1 depth net
+instead and uses this camera-aware DepthNet only in its depth-supervised variant (``da_occ_depth``).
 
 Deviation: BEVDepth also uses a deformable conv in the depth branch; occkit leaves it out (no custom operators, ONNX
 export with standard ops) and says so in its configs.
@@ -42,7 +44,7 @@ class DepthNetConfig:
     residual_blocks: int = 3
     """BasicBlocks in the bins branch (counting those replaced by DACs)."""
     dac_blocks: int = 0
-    """Last residual blocks replaced by vertical DAC blocks (DA-Occ's HeightNet: 2)."""
+    """Last residual blocks replaced by vertical DAC blocks (DA-Occ's HeightNet: 2; 0: BasicBlocks throughout)."""
     feature_height: int = 16
     """Rows of the image features (the DAC kernel length), e.g. 256 / 16."""
     aspp: bool = True
