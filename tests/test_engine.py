@@ -36,6 +36,7 @@ import pytest
 import torch
 from conftest import torch_threads
 
+from occkit.classes import DETECTION_CLASSES
 from occkit.engine.checkpoint import atomic_save, latest_checkpoint, load_checkpoint, save_checkpoint
 from occkit.sim.generate import SimConfig, simulate_dataset
 from occkit.zoo import load_experiment
@@ -223,12 +224,18 @@ def _kill_and_resume(data: Path, folder: Path, extra: tuple[str, ...], kills_aft
             "seconds": time.perf_counter() - started}  # fmt: skip
 
 
-#: The run killed and resumed: 12 steps of 2 accumulated batches read by a DataLoader worker in CBGS order, a
-#: checkpoint every 2 steps and a log row every 3 (so a checkpoint falls between two rows), a ramped EMA, a per-epoch
-#: cosine, validation every epoch.
+#: The run killed and resumed: 12 steps of 2 accumulated batches read by a DataLoader worker, a checkpoint every 2
+#: steps and a log row every 3 (so a checkpoint falls between two rows), a ramped EMA, a per-epoch cosine, validation
+#: every epoch (2 steps).
 RESUMED_RUN = ("train.max_steps=12", "train.accumulate=2", "train.workers=1", "train.checkpoint_every=2",
                "train.log_every=3", "train.ema_decay=0.9", "train.ema_ramp=4", "train.val_every=1",
-               "train.sampler=cbgs", "train.lr_by_epoch=true", "data.valid_boxes_only=true")  # fmt: skip
+               "train.lr_by_epoch=true")  # fmt: skip
+
+#: The CBGS run killed once and resumed: its epoch is the class-balanced list (longer than the 12 steps), so the kill
+#: falls inside it and the resumed sampler must skip into the resampled order.
+CBGS_RUN = ("train.max_steps=12", "train.workers=1", "train.checkpoint_every=2", "train.log_every=3",
+            "train.ema_decay=0.9", "train.val_every=-1", "train.sampler=cbgs",
+            "data.valid_boxes_only=true")  # fmt: skip
 
 
 @pytest.fixture(scope="session")
@@ -237,6 +244,13 @@ def resumed(data, tmp_path_factory) -> dict:
     rng = random.Random(KILL_SEED)
     kills_after = [rng.randint(3, 5), rng.randint(2, 3)]  # after the row of step 3 or 6, then of step 6 or 9
     return _kill_and_resume(data, tmp_path_factory.mktemp("resume"), RESUMED_RUN, kills_after, KILL_SEED)
+
+
+@pytest.fixture(scope="session")
+def resumed_cbgs(data, tmp_path_factory) -> dict:
+    """CBGS_RUN uninterrupted, and killed once then resumed to the end."""
+    kills_after = [random.Random(KILL_SEED + 1).randint(3, 5)]
+    return _kill_and_resume(data, tmp_path_factory.mktemp("resume-cbgs"), CBGS_RUN, kills_after, KILL_SEED + 1)
 
 
 # ------------------------------------------------------------------------------------------------------ checkpoints
@@ -307,6 +321,24 @@ def test_killed_and_resumed_run_is_bitwise_the_uninterrupted_one(resumed):
         runs["killed"] / "best.pt")  # fmt: skip
     assert best_reference["step"] == best_resumed["step"]
     _assert_equal_tensors(best_reference["model"], best_resumed["model"], "best.pt")
+
+
+def test_a_killed_and_resumed_cbgs_run_is_bitwise_the_uninterrupted_one(resumed_cbgs, data):
+    from occkit.data.dataset import DatasetConfig, OccupancyDataset
+    from occkit.data.sampling import cbgs_indices
+
+    runs = resumed_cbgs
+    reference, resumed = _final(runs["reference"]), _final(runs["killed"])
+    assert reference["step"] == resumed["step"] == 12
+    _assert_equal_tensors(reference["model"], resumed["model"], "model")
+    _assert_equal_tensors(reference["ema"], resumed["ema"], "EMA")
+    _assert_equal_optimizers(reference["optimizer"], resumed["optimizer"])
+    assert _without_speed(_rows(runs["killed"] / "log.jsonl")) == _without_speed(_rows(runs["reference"] / "log.jsonl"))
+    # The 12 steps stayed inside the first CBGS epoch, which is longer than the split: the kill fell mid-epoch.
+    split = OccupancyDataset(DatasetConfig(root=str(data), split="train", cameras=CAMERAS, sweeps=-1,
+                                           valid_boxes_only=True))  # fmt: skip
+    population = cbgs_indices(split.sample_classes(), DETECTION_CLASSES, seed=0)
+    assert len(population) > max(12, len(split)) and reference["epoch"] == 0
 
 
 def test_resume_auto_after_a_kill_before_the_first_checkpoint_starts_afresh(data, tmp_path):
