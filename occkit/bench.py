@@ -19,12 +19,18 @@ What one run does, in this order (``occkit bench`` is the command; ``docs/benchm
    measured just before, so the model and its yardstick see the same threads, device and machine load.
 5. Time the stages (image encoder, view transform, LiDAR encoder, fusion + BEV encoder, heads) with forward hooks
    on their submodules over ``stage_iters`` more passes; the remainder of the pass is ``other``.
+6. For a temporal model, the ``streaming`` section: the scene's key frames streamed in order, over and over, one
+   frame per pass with the history carried in a :class:`~occkit.models.temporal.StreamMemory` (every frame's BEV
+   computed once), timed in interleaved pairs against the same model without history on the same frames; the
+   per-frame latency of both and the median of the pairs' ratios. (Steps 2 to 5 time a temporal model on one frame
+   with an empty history, which costs what a streamed frame costs: the warp and fusion run on zeros.)
 """
 
 from __future__ import annotations
 
 import contextlib
 import copy
+import dataclasses
 import gc
 import os
 import platform
@@ -41,7 +47,7 @@ import torch
 from torch import Tensor, nn
 
 from occkit import zoo
-from occkit.engine.reference_frame import load_key_frame, simulate_reference_world
+from occkit.engine.reference_frame import load_key_frame, load_scene_frames, simulate_reference_world
 from occkit.metrics.realtime import rt_miou_table
 from occkit.models.base import Architecture
 from occkit.models.complexity import count_macs, count_parameters
@@ -61,6 +67,7 @@ __all__ = [
     "ModelRunner",
     "paired_times",
     "machine_info",
+    "single_frame_twin",
 ]
 
 #: Where the benchmark world is simulated when no dataset is given.
@@ -530,6 +537,9 @@ def run_bench(cfg: BenchConfig, log: Callable[[str], None] = print) -> dict:
             default=None,
         )
         result["most_time_beyond_gemm"] = max(stages, key=lambda s: stages[s]["ms_beyond_gemm"])
+        if getattr(model, "temporal", None) is not None:
+            log(f"{cfg.model}: streaming the scene, {cfg.iters} interleaved pairs against the model without history")
+            result["streaming"] = _streaming(model, result["fast_path"]["applied"], cfg, device)
         if cfg.miou is not None:
             result["rt_miou"] = {"miou": cfg.miou, **rt_miou_table(cfg.miou, result["fps"])}
         result["machine"] = machine_info(device)
@@ -597,6 +607,66 @@ def _time_model(model: nn.Module, runner: ModelRunner, cfg: BenchConfig, device:
     }  # fmt: skip
 
 
+def single_frame_twin(name: str) -> nn.Module:
+    """Zoo entry ``name``'s model without its history: the same config with ``temporal`` None and the BEV encoder
+    taking one frame's channels (the model a temporal entry's streaming latency is compared with)."""
+    architecture, config = zoo.model_config(name)
+    if getattr(config, "temporal", None) is None:
+        raise ValueError(f"{name} has no history")
+    frame_channels = zoo.build_from_config(architecture, config).temporal.channels
+    twin = dataclasses.replace(config, temporal=None, bev=dataclasses.replace(config.bev, in_channels=frame_channels))
+    return zoo.build_from_config(architecture, twin)
+
+
+def _streaming(model: nn.Module, applied: list[str], cfg: BenchConfig, device: torch.device) -> dict:
+    """Per-frame latency of ``model`` streamed over its scene's key frames against its single-frame twin (the same
+    fast path applied) on the same frames, in interleaved pairs."""
+    settings = zoo.experiment(cfg.model).data
+    root = DEFAULT_DATA if cfg.data is None else Path(cfg.data)
+    frames = [batch.to(device) for batch in load_scene_frames(settings, root, cfg.batch_size)]
+    twin = single_frame_twin(cfg.model).to(device).eval()
+    prepare_for_inference(twin)
+    for name in applied:
+        apply_optimization(twin, name)
+    memory = model.stream()
+    dtype = PRECISIONS[cfg.precision]
+    autocast = partial(torch.autocast, device.type, dtype=dtype, enabled=dtype != torch.float32)
+    synchronize = _synchronizer(device)
+    step = {"streamed": 0, "single": 0}
+
+    def streamed() -> float:
+        batch = frames[step["streamed"] % len(frames)]
+        step["streamed"] += 1
+        with torch.no_grad(), autocast():
+            return _timed(lambda: model(batch, memory=memory), synchronize)
+
+    def single() -> float:
+        batch = frames[step["single"] % len(frames)]
+        step["single"] += 1
+        with torch.no_grad(), autocast():
+            return _timed(lambda: twin(batch), synchronize)
+
+    for _ in range(max(cfg.warmup, 1)):
+        streamed(), single()
+    times, twin_times = paired_times(streamed, single, cfg.iters)
+    slots = memory.states
+    return {
+        "frames": len(frames),
+        "history": model.temporal.cfg.history,
+        "fusion": model.temporal.cfg.fusion,
+        "memory_slots": model.temporal.memory_frames,
+        "memory_bytes": int(slots.numel() * slots.element_size()) if slots is not None else 0,
+        "latency_ms": {"median": 1000 * statistics.median(times), "p90": 1000 * _percentile(times, 90),
+                       "all": [1000 * t for t in times]},
+        "fps": cfg.batch_size / statistics.median(times),
+        "single_frame": {"model": f"{cfg.model} without history", "params": count_parameters(twin),
+                         "latency_ms": {"median": 1000 * statistics.median(twin_times),
+                                        "all": [1000 * t for t in twin_times]}},
+        # The median of the pairs' ratios: each pair saw one machine load.
+        "latency_ratio": statistics.median(t / s for t, s in zip(times, twin_times, strict=True)),
+    }  # fmt: skip
+
+
 # ------------------------------------------------------------------------------------------------- report
 def format_report(result: dict) -> str:
     """A readable summary of :func:`run_bench`'s result: headline numbers, the stage table and the ablation."""
@@ -626,6 +696,12 @@ def format_report(result: dict) -> str:
             kept = "yes" if step["kept"] else "no" + (f": {step['error']}" if "error" in step else "")
             lines.append(f"  {step['optimization']:<18} {step['reference_ms']:>10.1f} {step['latency_ms']:>10.1f} "
                          f"{step['speedup']:>8.3f}x  {kept}")  # fmt: skip
+    if "streaming" in result:
+        stream = result["streaming"]
+        lines += ["", f"  streaming ({stream['fusion']}, history {stream['history']}, {stream['frames']} frames "
+                      f"cycled): {stream['latency_ms']['median']:.1f} ms per frame vs "
+                      f"{stream['single_frame']['latency_ms']['median']:.1f} ms without history "
+                      f"(x{stream['latency_ratio']:.3f}); memory {stream['memory_bytes'] / 2**20:.1f} MiB"]
     if "rt_miou" in result:
         rt = result["rt_miou"]
         lines += ["", "  " + ", ".join(f"{k.replace('rt_miou', 'RT-mIoU')} {v:.2f}" for k, v in rt.items()

@@ -37,7 +37,7 @@ from occkit import zoo
 from occkit.config import to_dict
 from occkit.engine.checkpoint import check_compatible
 from occkit.engine.evaluate import load_trained
-from occkit.models.deployment import OUTPUT_NAME, DeployedNetwork, deploy
+from occkit.models.deployment import DeployedNetwork, deploy
 from occkit.types import Batch
 
 __all__ = [
@@ -131,46 +131,59 @@ def _check_parameters(model: nn.Module, reference: nn.Module, message: str) -> N
                              f"{expected.get(key, 'missing')} in the zoo model")
 
 
-def load_sample(experiment: Any, data: str | Path | None = None,
-                index: int | None = None) -> tuple[Batch, dict[str, Any]]:
-    """One key frame with the experiment's data settings and the test transform, as a batch of one.
+def load_sample(experiment: Any, data: str | Path | None = None, index: int | None = None,
+                scene: bool = False) -> tuple[Batch, dict[str, Any], list[Batch]]:  # fmt: skip
+    """One key frame with the experiment's data settings and the test transform, as a batch of one; with ``scene``
+    also every key frame of its scene in time order (the stream a temporal model's parity is checked on).
 
     Args:
         experiment: from :func:`load_model`.
-        data: a nuScenes-layout dataset root; None simulates a one-scene synthetic world (two key frames,
-            400 x 225 images) in a temporary folder.
+        data: a nuScenes-layout dataset root; None simulates a one-scene synthetic world (two key frames, six with
+            ``scene``; 400 x 225 images) in a temporary folder.
         index: key frame of the whole dataset (split ``all``); None takes the second (the first of a one-frame
             dataset), which has a full set of earlier LiDAR sweeps when the first scene has two key frames or more.
+        scene: also load the key frame's scene.
 
     Returns:
-        The batch and a description of where it came from.
+        The batch, a description of where it came from, and the scene's frames (empty without ``scene``).
     """
     from occkit.data.collate import collate
     from occkit.data.dataset import OccupancyDataset
 
     if index is not None and index < 0:
         raise ValueError(f"the sample index must be >= 0, got {index}")
-    settings = {"split": "all", "augment": False, "occupancy": False, "boxes": False, "depth_downsample": 0}
+    settings = {"split": "all", "augment": False, "occupancy": False, "boxes": False, "depth_downsample": 0,
+                "history": 0}
 
-    def key_frame(root: Path) -> tuple[Batch, dict[str, Any]]:
+    def key_frame(root: Path) -> tuple[Batch, dict[str, Any], list[Batch]]:
         dataset = OccupancyDataset(dataclasses.replace(experiment.data, root=str(root), index=None, **settings))
         if index is not None and index >= len(dataset):
             raise ValueError(f"--sample {index}: {root} has {len(dataset)} key frames, 0 to {len(dataset) - 1}")
         frame = min(1, len(dataset) - 1) if index is None else index
-        return collate([dataset[frame]]), {"index": frame, "token": dataset.records[frame].token}
+        record = dataset.records[frame]
+        frames = []
+        if scene:
+            order = sorted((i for i, r in enumerate(dataset.records) if r.scene == record.scene),
+                           key=lambda i: dataset.records[i].index_in_scene)  # fmt: skip
+            frames = [collate([dataset[i]]) for i in order]
+        source = {"index": frame, "token": record.token, **({"scene": record.scene, "frames": len(frames)}
+                                                            if scene else {})}  # fmt: skip
+        return collate([dataset[frame]]), source, frames
 
     if data is not None:
         if not Path(data).is_dir():
             raise FileNotFoundError(f"dataset root {data} does not exist")
-        batch, source = key_frame(Path(data))
-        return batch, {"data": str(data), **source}
+        batch, source, frames = key_frame(Path(data))
+        return batch, {"data": str(data), **source}, frames
     from occkit.sim.generate import SimConfig, simulate_dataset
 
     with tempfile.TemporaryDirectory() as folder:
         root = Path(folder) / "world"
-        simulate_dataset(SimConfig(scenes=1, frames=2, image_size=(400, 225), version=experiment.data.version), root)
-        batch, source = key_frame(root)
-    return batch, {"data": "synthetic world (1 scene, 400x225), generated", **source}
+        world = SimConfig(scenes=1, frames=6 if scene else 2, image_size=(400, 225), version=experiment.data.version)
+        simulate_dataset(world, root)
+        batch, source, frames = key_frame(root)
+    return batch, {"data": f"synthetic world (1 scene of {world.frames} key frames, 400x225), generated", **source}, \
+        frames
 
 
 # ----------------------------------------------------------------------------------------------------- export
@@ -251,7 +264,7 @@ def export_onnx(net: DeployedNetwork, inputs: dict[str, Tensor], path: str | Pat
     with torch.no_grad():
         output = net(*args)
         program = torch.onnx.export(net, args, dynamo=True, opset_version=opset, input_names=net.input_names,
-                                    output_names=[OUTPUT_NAME], dynamic_shapes=_dynamic_shapes(net), verbose=False)
+                                    output_names=net.output_names, dynamic_shapes=_dynamic_shapes(net), verbose=False)
     # The weights file of an earlier export to the same path would be left behind, unreferenced.
     external = path.with_name(path.name + ".data")
     external.unlink(missing_ok=True)
@@ -272,7 +285,9 @@ def export_onnx(net: DeployedNetwork, inputs: dict[str, Tensor], path: str | Pat
     return {
         "opset": opset,
         "inputs": [spec(name, inputs[name], net.input_docs[name]) for name in net.input_names],
-        "outputs": [spec(OUTPUT_NAME, output, "occupancy logits (B, K, X, Y, Z)")],
+        "outputs": [spec(name, tensor, net.output_docs[name])
+                    for name, tensor in zip(net.output_names, output if isinstance(output, tuple) else (output,),
+                                            strict=True)],
         "op_types": operator_counts(path),
         "files": files,
     }
@@ -328,28 +343,54 @@ def _feeds(inputs: dict[str, Tensor]) -> dict[str, np.ndarray]:
     return {name: tensor.detach().cpu().numpy() for name, tensor in inputs.items()}
 
 
-def check_parity(path: str | Path, model: nn.Module, net: DeployedNetwork, batch: Batch) -> dict[str, Any]:
-    """Run the exported graph in onnxruntime (CPU) on ``batch`` and compare it with ``model(batch)``.
+def check_parity(path: str | Path, model: nn.Module, net: DeployedNetwork, batch: Batch,
+                 frames: list[Batch] | None = None) -> dict[str, Any]:  # fmt: skip
+    """Run the exported graph in onnxruntime (CPU) on ``batch`` and compare it with ``model(batch)``; for a temporal
+    model, on every frame of ``frames`` streamed in order, the graph's state output fed back as its next input,
+    against the model streamed with its own memory.
 
     Args:
         path: the exported ``.onnx``.
         model: the model ``net`` was made from, in eval mode.
         net: the fixed-rig network, which makes the graph's inputs from the batch.
         batch: a sample of the rig ``net`` was made for.
+        frames: a temporal model's stream (a scene's key frames in time order); None: ``[batch]``.
 
     Returns:
-        ``max_abs_diff`` and ``argmax_agreement`` (over ``voxels``), ``passed`` (both within ``tolerance``),
-        ``argmax_disagreements`` and how many of them are numerical ties
+        ``max_abs_diff`` and ``argmax_agreement`` (over ``voxels``, all frames), ``passed`` (both within
+        ``tolerance``), ``argmax_disagreements`` and how many of them are numerical ties
         (``disagreements_within_twice_max_abs_diff``: the model's two best logits differ by at most twice
-        ``max_abs_diff``), and ``network_max_abs_diff``: the PyTorch network against the model.
+        ``max_abs_diff``), and ``network_max_abs_diff``: the PyTorch network against the model; with a stream also
+        ``frames`` and ``max_abs_diff_per_frame``.
     """
+    session = _session(path)
+    stream = frames if frames is not None else [batch]
+    temporal = net.temporal is not None
+    graph_memory = model.stream() if temporal else None
+    model_memory = model.stream() if temporal else None
+    network_memory = model.stream() if temporal else None
+    onnx_all, reference_all, per_frame, network_diff = [], [], [], 0.0
     with torch.no_grad():
-        inputs = net.inputs(batch)
-        reference = model(batch).occupancy.float().cpu()
-        network = net(*inputs.values()).float().cpu()
-        logits = torch.from_numpy(np.asarray(_session(path).run([OUTPUT_NAME], _feeds(inputs))[0])).float()
-    parity = _compare(logits, reference)
-    parity["network_max_abs_diff"] = float((network - reference).abs().max())
+        for frame in stream:
+            inputs = net.inputs(frame, graph_memory)
+            outputs = session.run(net.output_names, _feeds(inputs))
+            logits = torch.from_numpy(np.asarray(outputs[0])).float()
+            if temporal:
+                state = torch.from_numpy(np.asarray(outputs[1])).to(frame.ego2global.device)
+                graph_memory.push(state, frame.ego2global, frame.occ_aug)
+                reference = model(frame, memory=model_memory).occupancy.float().cpu()
+                network = net.stream(frame, network_memory).float().cpu()
+            else:
+                reference = model(frame).occupancy.float().cpu()
+                network = net(*inputs.values()).float().cpu()
+            per_frame.append(float((logits - reference).abs().max()))
+            network_diff = max(network_diff, float((network - reference).abs().max()))
+            onnx_all.append(logits)
+            reference_all.append(reference)
+    parity = _compare(torch.cat(onnx_all), torch.cat(reference_all))
+    parity["network_max_abs_diff"] = network_diff
+    if temporal:
+        parity.update(frames=len(stream), max_abs_diff_per_frame=per_frame)
     return parity
 
 
@@ -369,7 +410,8 @@ def measure_latency(path: str | Path, model: nn.Module, net: DeployedNetwork, ba
         inputs = net.inputs(batch)
         feeds, args = _feeds(inputs), tuple(inputs.values())
         seconds = {
-            "onnxruntime": _median_seconds(lambda: session.run([OUTPUT_NAME], feeds), repeats, torch.device("cpu")),
+            "onnxruntime": _median_seconds(lambda: session.run(net.output_names, feeds), repeats,
+                                           torch.device("cpu")),
             "torch_network": _median_seconds(lambda: net(*args), repeats, device),
             "torch_model": _median_seconds(lambda: model(batch), repeats, device),
         }
@@ -408,7 +450,8 @@ def export_model(
         raise ValueError(f"repeats must be >= 1, got {repeats}")
     check_opset(opset)
     model, experiment, difference = load_model(name, checkpoint)
-    batch, source = load_sample(experiment, data, sample)
+    temporal = getattr(model, "temporal", None) is not None
+    batch, source, frames = load_sample(experiment, data, sample, scene=temporal)
     net = deploy(model, batch)
     with torch.no_grad():
         inputs = net.inputs(batch)
@@ -420,7 +463,7 @@ def export_model(
                   export_seconds=round(time.perf_counter() - start, 1),
                   precomputed={n: list(b.shape) for n, b in net.named_buffers(recurse=False)})
     if check:
-        report["parity"] = check_parity(out, model, net, batch)
+        report["parity"] = check_parity(out, model, net, batch, frames if temporal else None)
         report["latency_ms"] = measure_latency(out, model, net, batch, repeats)
         report["onnxruntime"] = _require("onnxruntime").__version__
     json_path = out.with_suffix(".json")

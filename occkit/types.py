@@ -22,6 +22,13 @@ class Sample:
 
     Camera geometry is given relative to the key frame's ego pose (at the LiDAR timestamp), so the small ego motion
     between the LiDAR and each camera's exposure is already folded into ``cam2ego``.
+
+    With ``DatasetConfig.history = K > 0`` the ``history_*`` fields hold the cameras of the ``K`` earlier key frames
+    of the scene, newest first (BEVDet4D-style temporal fusion). They share the sample's augmentation: each camera's
+    image augmentation (``history_img_aug[k] == img_aug``) and the one BEV augmentation ``occ_aug`` / ``bev_aug``,
+    which moves the whole sequence, so a model aligns history frame ``k`` to the current one with
+    ``occ_aug @ inv(ego2global) @ history_ego2global[k] @ inv(occ_aug)`` and nothing per frame is stored. Points,
+    boxes, labels and depth maps are the current frame's only.
     """
 
     token: str
@@ -62,6 +69,23 @@ class Sample:
     """``(N, h, w)`` float32 LiDAR depth per feature cell (0 = none), on request."""
     height_maps: Tensor | None = None
     """``(N, h, w)`` float32 minimum ego-frame height per feature cell (NaN = none), on request."""
+    history_tokens: tuple[str, ...] | None = None
+    """``K`` earlier sample tokens of the scene, newest first; a padded slot holds this sample's token. None unless
+    ``DatasetConfig.history > 0`` (as every ``history_*`` field)."""
+    history_images: Tensor | None = None
+    """``(K, N, 3, H, W)`` float32 images of the earlier key frames, normalised and augmented as ``images``; failed
+    cameras (``camera_mask``) zeroed in every frame."""
+    history_intrinsics: Tensor | None = None
+    """``(K, N, 3, 3)`` float32 pinhole matrices of the earlier frames' original images."""
+    history_cam2ego: Tensor | None = None
+    """``(K, N, 4, 4)`` float32 camera -> that history frame's own key-frame ego (its record's ``cam2keyego``)."""
+    history_img_aug: Tensor | None = None
+    """``(K, N, 3, 3)`` float32 original -> augmented pixel map; every slot equals ``img_aug``."""
+    history_ego2global: Tensor | None = None
+    """``(K, 4, 4)`` float64 ego pose of each history frame (at its LiDAR key-frame timestamp)."""
+    history_padded: Tensor | None = None
+    """``(K,)`` bool, True where the scene has too few earlier frames and the slot repeats this frame (its images,
+    calibration and pose: the motion to it is the identity)."""
 
 
 @dataclass
@@ -106,6 +130,20 @@ class Batch:
     """``(B, N, h, w)``."""
     height_maps: Tensor | None = None
     """``(B, N, h, w)``."""
+    history_tokens: list[tuple[str, ...]] | None = None
+    """``B`` tuples of ``K`` earlier sample tokens, newest first (padded slots: the sample's own token)."""
+    history_images: Tensor | None = None
+    """``(B, K, N, 3, H, W)``."""
+    history_intrinsics: Tensor | None = None
+    """``(B, K, N, 3, 3)``."""
+    history_cam2ego: Tensor | None = None
+    """``(B, K, N, 4, 4)`` camera -> the history frame's own ego."""
+    history_img_aug: Tensor | None = None
+    """``(B, K, N, 3, 3)``."""
+    history_ego2global: Tensor | None = None
+    """``(B, K, 4, 4)`` float64."""
+    history_padded: Tensor | None = None
+    """``(B, K)`` bool, slots that repeat the current frame."""
 
     def __len__(self) -> int:
         return len(self.tokens)
@@ -136,6 +174,9 @@ class ModelOutput:
     """``(B, N, D, h, w)`` depth distributions of LSS models."""
     height: Tensor | None = None
     """``(B, N, Z, h, w)`` height distributions of DA-Occ."""
+    history_state: Tensor | None = None
+    """``(B, C, X, Y)`` of temporal models: what a stream keeps of this frame for the next ones
+    (:class:`~occkit.models.temporal.StreamMemory`)."""
 
 
 @dataclass

@@ -27,11 +27,15 @@ def make_batch(
     occupancy: bool = True,
     depth_stride: int = 0,
     space: LabelSpace = OCC3D_SPACE,
+    history: int = 0,
+    padded: int = 0,
 ) -> Batch:
     """A batch with ``num_cameras`` cameras (0 allowed) spread around the car, random points in +-40 m, ten boxes per
     sample and ``space`` labels that follow simple rules (ground low, a vehicle class around three of the boxes, free
     above; the visibility masks where the space has them); with ``depth_stride``, LiDAR-like depth (0 = none) and
-    height (NaN = none) maps at that feature stride."""
+    height (NaN = none) maps at that feature stride. With ``history``, as many earlier frames of the same rig
+    (random images), the ego 2 m further back and 3 degrees less turned per frame, the oldest ``padded`` of them
+    padded (the current frame repeated, as the dataset pads)."""
     generator = torch.Generator().manual_seed(seed)
     height, width = image_size
     focal = width / 2
@@ -85,6 +89,21 @@ def make_batch(
             batch.mask_camera = torch.rand(batch_size, *shape, generator=generator) > 0.3
         if "lidar" in space.masks:
             batch.mask_lidar = torch.ones(batch_size, *shape, dtype=torch.bool)
+    if history:
+        repeat = (1, history, 1, 1, 1)
+        batch.history_tokens = [tuple(f"sample{i}-{k + 1}" for k in range(history)) for i in range(batch_size)]
+        batch.history_images = torch.randn(batch_size, history, num_cameras, 3, height, width, generator=generator)
+        batch.history_intrinsics = batch.intrinsics[:, None].repeat(*repeat)
+        batch.history_cam2ego = batch.cam2ego[:, None].repeat(*repeat)
+        batch.history_img_aug = batch.img_aug[:, None].repeat(*repeat)
+        poses = [make_transform(rotation_about_z(torch.tensor(math.radians(-3.0 * (k + 1)))),
+                                torch.tensor([-2.0 * (k + 1), 0.0, 0.0])).double() for k in range(history)]
+        batch.history_ego2global = torch.stack(poses)[None].repeat(batch_size, 1, 1, 1)
+        batch.history_padded = torch.zeros(batch_size, history, dtype=torch.bool)
+        if padded:
+            batch.history_padded[:, history - padded :] = True
+            batch.history_images[:, history - padded :] = batch.images[:, None]
+            batch.history_ego2global[:, history - padded :] = batch.ego2global[:, None]
     if depth_stride:
         shape = (batch_size, num_cameras, height // depth_stride, width // depth_stride)
         batch.depth_maps = (torch.rand(shape, generator=generator) * 50).where(

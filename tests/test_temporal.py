@@ -161,24 +161,20 @@ def _inputs_of(module: torch.nn.Module) -> list[torch.Tensor]:
 
 
 def test_concat_fusion_concatenates_current_then_the_aligned_frames():
+    # BEVDet4D's fusion has no layer of its own: the BEV encoder's first block convolves the concatenation.
     fusion = ConcatFusion(channels=4, history=2, bev_range=EXACT_RANGE, with_valid=True)
-    # BEVDet4D's first BEV-encoder block: BasicBlock with a biased 3x3 conv shortcut, here at stride 1.
-    assert fusion.fuse.conv1.in_channels == 4 * 3 + 2 and fusion.fuse.conv1.stride == (1, 1)
-    assert fusion.fuse.downsample.kernel_size == (3, 3) and fusion.fuse.downsample.bias is not None
-    seen = _inputs_of(fusion.fuse)
+    assert fusion.out_channels == 4 * 3 + 2 and not list(fusion.parameters())
     current, history = torch.randn(2, 4, 16, 16), torch.randn(2, 2, 4, 16, 16)
     transforms = torch.stack([torch.eye(4).expand(2, 4, 4), _translation(1.0, 0.0, batch=2)], dim=1)
-    out = fusion(current, history, transforms)
-    assert out.shape == (2, 4, 16, 16)
-    fused_input = seen[0]
-    assert fused_input.shape == (2, 14, 16, 16)
-    assert torch.equal(fused_input[:, :4], current)
-    assert torch.equal(fused_input[:, 4:8], history[:, 0])
-    assert torch.equal(fused_input[:, 8:12, :15], history[:, 1, :, 1:])
-    assert fused_input[:, 12].all() and not fused_input[:, 13, 15].any() and fused_input[:, 13, :15].all()
+    fused = fusion(current, history, transforms)
+    assert fused.shape == (2, 14, 16, 16)
+    assert torch.equal(fused[:, :4], current)
+    assert torch.equal(fused[:, 4:8], history[:, 0])
+    assert torch.equal(fused[:, 8:12, :15], history[:, 1, :, 1:])
+    assert fused[:, 12].all() and not fused[:, 13, 15].any() and fused[:, 13, :15].all()
     plain = ConcatFusion(channels=4, history=3, bev_range=EXACT_RANGE)
-    assert plain.fuse.conv1.in_channels == 16
-    assert plain(current, torch.randn(2, 3, 4, 16, 16), torch.eye(4).expand(2, 3, 4, 4)).shape == (2, 4, 16, 16)
+    assert plain.out_channels == 16
+    assert plain(current, torch.randn(2, 3, 4, 16, 16), torch.eye(4).expand(2, 3, 4, 4)).shape == (2, 16, 16, 16)
     with pytest.raises(ValueError, match="history"):
         plain(current, history, transforms)
 

@@ -24,17 +24,29 @@ _STACKED = (
     "mask_lidar",
     "depth_maps",
     "height_maps",
+    "history_images",
+    "history_intrinsics",
+    "history_cam2ego",
+    "history_img_aug",
+    "history_ego2global",
+    "history_padded",
 )
 
 
-def _stack(samples: list[Sample], name: str) -> Tensor | None:
+def _values(samples: list[Sample], name: str) -> list | None:
+    """Every sample's ``name``; None when none has it (a mix is an error: the batch would be ragged)."""
     values = [getattr(s, name) for s in samples]
     if all(v is None for v in values):
         return None
     if any(v is None for v in values):
         missing = [s.token for s, v in zip(samples, values, strict=True) if v is None]
         raise ValueError(f"cannot collate {name}: samples {', '.join(missing)} have none")
-    return torch.stack(values)
+    return values
+
+
+def _stack(samples: list[Sample], name: str) -> Tensor | None:
+    values = _values(samples, name)
+    return None if values is None else torch.stack(values)
 
 
 def collate(samples: list[Sample | None]) -> Batch:
@@ -49,6 +61,7 @@ def collate(samples: list[Sample | None]) -> Batch:
         return batch
     for name in _STACKED:
         setattr(batch, name, _stack(kept, name))
+    batch.history_tokens = _values(kept, "history_tokens")
     if any(s.points is not None for s in kept):
         clouds = [s.points if s.points is not None else torch.zeros(0, 5) for s in kept]
         batch.num_points = torch.tensor([c.shape[0] for c in clouds], dtype=torch.int64)

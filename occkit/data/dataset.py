@@ -42,6 +42,7 @@ from occkit.data.splits import split_scenes
 from occkit.data.transforms import (
     BevAugConfig,
     ImageAugConfig,
+    ImageAugParams,
     augment_boxes,
     augment_image,
     augment_occupancy,
@@ -88,6 +89,11 @@ class DatasetConfig:
     """Cameras to load, in this order; empty for LiDAR-only models."""
     sweeps: int = 9
     """Previous LiDAR sweeps added to the key frame (DAOcc: 9, i.e. 10 sweeps); -1 for no LiDAR at all."""
+    history: int = 0
+    """Earlier key frames of the same scene each sample carries (temporal models: BEVDet4D-style history), newest
+    first; 0 for none. At the start of a scene the missing frames repeat the current one and are flagged padded
+    (BEVDet4D's choice). Only their cameras are loaded, with the sample's own image augmentation and failed cameras;
+    the one BEV augmentation of the sample moves the whole sequence (``Sample.history_*``)."""
     occupancy: bool = True
     """Load the occupancy labels (and, for Occ3D, the visibility masks)."""
     label_space: str = "occ3d"
@@ -172,11 +178,26 @@ def _matrix(values, dtype=torch.float32) -> Tensor:
     return torch.tensor(np.asarray(values, dtype=np.float64), dtype=dtype)
 
 
+_MEAN = torch.tensor(_IMAGENET_MEAN).view(3, 1, 1)
+_STD = torch.tensor(_IMAGENET_STD).view(3, 1, 1)
+
+
+def _normalised(image: Image.Image, params: ImageAugParams) -> Tensor:
+    """``(3, H, W)`` float32: the image augmented with ``params``, ImageNet-normalised."""
+    pixels = torch.from_numpy(np.array(augment_image(image, params))).permute(2, 0, 1).float()
+    return (pixels - _MEAN) / _STD
+
+
 class OccupancyDataset(torch.utils.data.Dataset):
     """Key frames of one split as :class:`Sample`; see :class:`DatasetConfig`."""
 
     def __init__(self, config: DatasetConfig) -> None:
         self.config = config
+        if isinstance(config.history, bool) or not isinstance(config.history, int) or config.history < 0:
+            raise ValueError(f"history must be an integer >= 0 (earlier key frames per sample), got {config.history!r}")
+        if config.history and not config.cameras:
+            raise ValueError(f"history={config.history} needs cameras (history frames are camera frames); cameras is "
+                             "empty")  # fmt: skip
         self.space = label_space(config.label_space)
         self.root = Path(config.root)
         records = self._load_records()
@@ -189,6 +210,9 @@ class OccupancyDataset(torch.utils.data.Dataset):
         if missing:
             raise ValueError(f"{self.root}: cameras {missing} not in the data; it has {sorted(records[0].cameras)}")
         self.records = records
+        # Token -> record, to follow `prev` links to the history frames. The split's records suffice: a split is a
+        # list of scenes and `prev` never leaves the scene.
+        self._by_token = {r.token: r for r in records} if config.history else {}
         self.epoch = 0
         self.skipped = 0
         """Samples that failed to load and were skipped, in this process (each DataLoader worker counts its own)."""
@@ -294,7 +318,9 @@ class OccupancyDataset(torch.utils.data.Dataset):
             occ_aug=occ_aug.float(),
         )
         if config.cameras:
-            self._load_cameras(record, sample, rng)
+            augs = self._load_cameras(record, sample, rng)
+            if config.history:
+                self._load_history(record, sample, augs)
         key_points = None
         if config.sweeps >= 0:
             key_points = self._load_points(record, sample, rng)
@@ -310,19 +336,18 @@ class OccupancyDataset(torch.utils.data.Dataset):
             sample.height_maps = height_map(*args)
         return sample
 
-    def _load_cameras(self, record: FrameRecord, sample: Sample, rng: np.random.Generator) -> None:
-        mean = torch.tensor(_IMAGENET_MEAN).view(3, 1, 1)
-        std = torch.tensor(_IMAGENET_STD).view(3, 1, 1)
-        images, intrinsics, cam2ego, img_aug = [], [], [], []
+    def _load_cameras(self, record: FrameRecord, sample: Sample, rng: np.random.Generator) -> list[ImageAugParams]:
+        """The cameras of the key frame; returns each camera's augmentation, which its history frames share."""
+        images, intrinsics, cam2ego, img_aug, augs = [], [], [], [], []
         for name in self.config.cameras:
             camera = record.cameras[name]
             image = _read_image(self.root / camera.path, record.token, (camera.width, camera.height))
             params = sample_image_aug(self.config.image_aug, image.size, self.config.augment, rng)
-            pixels = torch.from_numpy(np.array(augment_image(image, params))).permute(2, 0, 1).float()  # (3, H, W)
-            images.append((pixels - mean) / std)
+            images.append(_normalised(image, params))
             intrinsics.append(_matrix(camera.intrinsics))
             cam2ego.append(_matrix(camera.cam2keyego))
             img_aug.append(params.matrix())
+            augs.append(params)
         sample.images = torch.stack(images)
         sample.camera_mask = torch.ones(len(images), dtype=torch.bool)
         failed = [i for i, name in enumerate(self.config.cameras) if name in self.config.drop_cameras]
@@ -335,6 +360,59 @@ class OccupancyDataset(torch.utils.data.Dataset):
         sample.intrinsics = torch.stack(intrinsics)
         sample.cam2ego = torch.stack(cam2ego)
         sample.img_aug = torch.stack(img_aug)
+        return augs
+
+    def _history_records(self, record: FrameRecord) -> list[FrameRecord]:
+        """Up to ``history`` earlier key frames of the record's scene, newest first, following ``prev``."""
+        frames: list[FrameRecord] = []
+        current = record
+        while len(frames) < self.config.history and current.prev:
+            # A `prev` outside the records: an index file that holds part of a scene (e.g. saved from a subset of
+            # the records); the history then ends there, as at the start of the scene. Indexes built here never link
+            # across scenes; the scene check keeps an edited index from doing so.
+            current = self._by_token.get(current.prev)
+            if current is None or current.scene != record.scene:
+                break
+            frames.append(current)
+        return frames
+
+    def _load_history(self, record: FrameRecord, sample: Sample, augs: list[ImageAugParams]) -> None:
+        """The cameras of the earlier key frames (``sample.history_*``), after :meth:`_load_cameras`.
+
+        Each camera's image gets the key frame's augmentation ``augs`` (no new draws: the sample's own draws stay
+        those of a run without history), and the cameras that failed in the key frame are failed in every frame (one
+        rig). Slots beyond the start of the scene repeat the key frame and are flagged padded.
+        """
+        frames = self._history_records(record)
+        failed = (~sample.camera_mask).nonzero().flatten().tolist()
+        images, intrinsics, cam2ego, ego2global = [], [], [], []
+        for frame in frames:
+            where = f"{frame.token} (history of {record.token})"
+            pixels = []
+            for name, params in zip(self.config.cameras, augs, strict=True):
+                camera = frame.cameras[name]
+                pixels.append(_normalised(_read_image(self.root / camera.path, where, (camera.width, camera.height)),
+                                          params))  # fmt: skip
+            frame_images = torch.stack(pixels)
+            if failed:
+                frame_images = drop_cameras(frame_images, failed)[0]
+            images.append(frame_images)
+            intrinsics.append(torch.stack([_matrix(frame.cameras[name].intrinsics) for name in self.config.cameras]))
+            cam2ego.append(torch.stack([_matrix(frame.cameras[name].cam2keyego) for name in self.config.cameras]))
+            ego2global.append(_matrix(frame.ego2global, torch.float64))
+        padding = self.config.history - len(frames)
+        # BEVDet4D's data pipeline also fills the slots before the scene's first frame with the current frame.
+        images += [sample.images] * padding
+        intrinsics += [sample.intrinsics] * padding
+        cam2ego += [sample.cam2ego] * padding
+        ego2global += [sample.ego2global] * padding
+        sample.history_tokens = tuple(f.token for f in frames) + (record.token,) * padding
+        sample.history_images = torch.stack(images)
+        sample.history_intrinsics = torch.stack(intrinsics)
+        sample.history_cam2ego = torch.stack(cam2ego)
+        sample.history_img_aug = sample.img_aug.expand(self.config.history, -1, -1, -1).clone()
+        sample.history_ego2global = torch.stack(ego2global)
+        sample.history_padded = torch.arange(self.config.history) >= len(frames)
 
     def _degrade(self, points: Tensor, rng: np.random.Generator) -> Tensor:
         """Fewer beams and points, for robustness evaluation; raw rows still hold the ring index in column 4."""

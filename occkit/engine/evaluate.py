@@ -1,7 +1,9 @@
 """Evaluation of a trained model: Occ3D mIoU / IoU (camera mask) and RayIoU over a dataset split.
 
 It runs over the split in order, sharded over ranks under torchrun; confusion matrices and RayIoU counts are
-summed over ranks, so any number of processes gives the same scores.
+summed over ranks, so any number of processes gives the same scores. A temporal model is streamed
+(:func:`stream_memory`): each rank runs whole scenes, frame by frame in time order, every frame's BEV computed once
+and its history kept in a :class:`~occkit.models.temporal.StreamMemory` that a new scene resets.
 """
 
 from __future__ import annotations
@@ -26,6 +28,7 @@ from occkit.metrics.confusion import OccupancyMetric
 from occkit.metrics.evaluate import write_prediction
 from occkit.metrics.origins import PoseRecord, ray_origins
 from occkit.metrics.rayiou import RAYIOU_THRESHOLDS, rayiou, rayiou_from_counts
+from occkit.models.temporal import StreamMemory
 from occkit.zoo import experiment_from_dict
 
 __all__ = [
@@ -33,19 +36,45 @@ __all__ = [
     "load_trained",
     "evaluation_dataset",
     "split_loader",
+    "stream_memory",
     "dataset_ray_origins",
 ]
 
 log = logging.getLogger(__name__)
 
 
-def split_loader(dataset: OccupancyDataset, batch_size: int, workers: int, context: distributed.Context | None):
+def split_loader(dataset: OccupancyDataset, batch_size: int, workers: int, context: distributed.Context | None,
+                 by_scene: bool = False):  # fmt: skip
     """Every sample once, in order, this rank's share. With ``on_error="skip"`` a batch holds the samples that
-    loaded, possibly none (``len(batch) == 0``): pass over those."""
+    loaded, possibly none (``len(batch) == 0``): pass over those.
+
+    ``by_scene`` (streaming): each rank takes whole scenes (every ``world``-th scene of the split), their frames in
+    the split's order, which is each scene's frames in time order."""
     rank, world = (context.rank, context.world_size) if context is not None else (0, 1)
-    sampler = distributed.EpochSampler(len(dataset), batch_size, rank, world, shuffle=False)
+    if by_scene:
+        scenes = list(dict.fromkeys(record.scene for record in dataset.records))
+        mine = set(scenes[rank::world])
+        population = [i for i, record in enumerate(dataset.records) if record.scene in mine]
+        sampler = distributed.EpochSampler(len(dataset), batch_size, shuffle=False, population=population)
+    else:
+        sampler = distributed.EpochSampler(len(dataset), batch_size, rank, world, shuffle=False)
     return torch.utils.data.DataLoader(dataset, batch_size=batch_size, sampler=sampler, num_workers=workers,
                                        collate_fn=collate, generator=torch.Generator())  # fmt: skip
+
+
+def stream_memory(model: nn.Module, batch_size: int) -> tuple[StreamMemory | None, int]:
+    """The memory to stream a temporal model with and the batch size to do it at (one frame per step: a frame
+    needs the one before it); ``(None, batch_size)`` for a single-frame model."""
+    if getattr(model, "temporal", None) is None:
+        return None, batch_size
+    if batch_size != 1:
+        log.info("%s is temporal: streaming one frame at a time (batch size %d ignored)", type(model).__name__,
+                 batch_size)  # fmt: skip
+    return model.stream(), 1
+
+
+def _predict(model: nn.Module, batch, memory: StreamMemory | None):
+    return model.predict(batch) if memory is None else model.predict(batch, memory=memory)
 
 
 def dataset_ray_origins(dataset: OccupancyDataset) -> dict[str, np.ndarray]:
@@ -70,7 +99,8 @@ def evaluate_model(
 
     Args:
         model: a zoo model; put in eval mode here.
-        dataset: the split, with ``occupancy=True`` and no augmentation.
+        dataset: the split, with ``occupancy=True`` and no augmentation; a temporal model streams it scene by scene
+            (:func:`stream_memory`).
         predictions: folder to also write ``<token>.npz`` predictions into.
         ray_origins: token -> origins; when given, RayIoU is computed too (no mask, as SparseOcc); Occ3D only.
         progress: called with the number of samples after each batch (skipped ones included).
@@ -90,11 +120,12 @@ def evaluate_model(
     metric = OccupancyMetric.for_space(space, mask)
     ray_counts = _frame_counts(rayiou([], [], [])["counts"])  # zeros: a rank may hold no frame at all
     frames = 0
-    loader = split_loader(dataset, batch_size, workers, context)
+    memory, batch_size = stream_memory(model, batch_size)
+    loader = split_loader(dataset, batch_size, workers, context, by_scene=memory is not None)
     share = len(loader.sampler)
     for index, batch in enumerate(loader):
         if len(batch) > 0:  # else every frame of the batch failed to load (on_error="skip")
-            semantics = model.predict(batch.to(device)).semantics.cpu().numpy()
+            semantics = _predict(model, batch.to(device), memory).semantics.cpu().numpy()
             labels = batch.voxel_semantics.numpy()
             masks = {name: None if value is None else value.numpy()
                      for name, value in (("mask_camera", batch.mask_camera), ("mask_lidar", batch.mask_lidar))}
@@ -164,8 +195,9 @@ def load_trained(
 
 
 def evaluation_dataset(experiment: Experiment, root: str | Path | None, split: str, labels: bool = True):
-    """The experiment's data settings on another root/split, without augmentation."""
-    changes: dict[str, Any] = {"split": split, "augment": False, "occupancy": labels}
+    """The experiment's data settings on another root/split, without augmentation (and without history frames: a
+    temporal model is streamed, :func:`stream_memory`)."""
+    changes: dict[str, Any] = {"split": split, "augment": False, "occupancy": labels, "history": 0}
     if root is not None:
         changes.update(root=str(root), index=None)
     return OccupancyDataset(dataclasses.replace(experiment.data, **changes))

@@ -1,7 +1,8 @@
 """Prediction with a trained model: one ``<token>.npz`` file per key frame of a dataset split
 (:func:`occkit.metrics.evaluate.write_prediction`).
 
-It runs over the split in order, sharded over ranks under torchrun (each rank writes the files of its share).
+It runs over the split in order, sharded over ranks under torchrun (each rank writes the files of its share); a
+temporal model is streamed scene by scene (:func:`occkit.engine.evaluate.stream_memory`).
 """
 
 from __future__ import annotations
@@ -15,7 +16,7 @@ from torch import nn
 
 from occkit.data.dataset import OccupancyDataset
 from occkit.engine import distributed
-from occkit.engine.evaluate import split_loader
+from occkit.engine.evaluate import split_loader, stream_memory
 from occkit.metrics.evaluate import write_prediction
 
 __all__ = ["predict_to_folder"]
@@ -33,11 +34,14 @@ def predict_to_folder(model: nn.Module, dataset: OccupancyDataset, out: Path, ba
     device = next(model.parameters()).device
     was_training = model.training
     model.eval()
-    loader = split_loader(dataset, batch_size, workers, context)
+    memory, batch_size = stream_memory(model, batch_size)
+    loader = split_loader(dataset, batch_size, workers, context, by_scene=memory is not None)
     share, written = len(loader.sampler), 0
     for index, batch in enumerate(loader):
         if len(batch) > 0:  # else every frame of the batch failed to load (on_error="skip")
-            semantics = model.predict(batch.to(device)).semantics.cpu().numpy()
+            batch = batch.to(device)
+            prediction = model.predict(batch) if memory is None else model.predict(batch, memory=memory)
+            semantics = prediction.semantics.cpu().numpy()
             for token, grid in zip(batch.tokens, semantics, strict=True):
                 write_prediction(out, token, grid)
             written += len(batch)

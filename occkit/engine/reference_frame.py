@@ -16,7 +16,7 @@ from occkit.sim.config import SimConfig
 from occkit.sim.generate import simulate_dataset
 from occkit.types import Batch
 
-__all__ = ["load_key_frame", "simulate_reference_world"]
+__all__ = ["load_key_frame", "load_scene_frames", "simulate_reference_world"]
 
 
 def load_key_frame(data: DatasetConfig, root: str | Path, index: int | None = None,
@@ -40,14 +40,32 @@ def load_key_frame(data: DatasetConfig, root: str | Path, index: int | None = No
         raise FileNotFoundError(f"dataset root {root} does not exist")
     if index is not None and index < 0:
         raise ValueError(f"the sample index must be >= 0, got {index}")
-    settings = dataclasses.replace(data, root=str(root), index=None, split="all", augment=False, occupancy=False,
-                                   boxes=False, depth_downsample=0)  # fmt: skip
-    dataset = OccupancyDataset(settings)
+    dataset = _inputs_of(data, root)
     if index is not None and index >= len(dataset):
         raise ValueError(f"--sample {index}: {root} has {len(dataset)} key frames, 0 to {len(dataset) - 1}")
     frame = len(dataset) - 1 if index is None else index
     source = {"data": str(root), "index": frame, "token": dataset.records[frame].token}
     return collate([dataset[frame]] * batch_size), source
+
+
+def load_scene_frames(data: DatasetConfig, root: str | Path, batch_size: int = 1) -> list[Batch]:
+    """Every key frame of the scene of ``root``'s last key frame, in time order, as :func:`load_key_frame` loads one
+    (the input of a temporal model's streaming benchmark)."""
+    root = Path(root)
+    if not root.is_dir():
+        raise FileNotFoundError(f"dataset root {root} does not exist")
+    dataset = _inputs_of(data, root)
+    scene = dataset.records[-1].scene
+    indices = sorted((i for i, record in enumerate(dataset.records) if record.scene == scene),
+                     key=lambda i: dataset.records[i].index_in_scene)  # fmt: skip
+    return [collate([dataset[i]] * batch_size) for i in indices]
+
+
+def _inputs_of(data: DatasetConfig, root: Path) -> OccupancyDataset:
+    """``root``'s key frames under ``data``'s input settings: the test transform, no targets, no history frames (a
+    temporal model streams its history)."""
+    return OccupancyDataset(dataclasses.replace(data, root=str(root), index=None, split="all", augment=False,
+                                                occupancy=False, boxes=False, depth_downsample=0, history=0))
 
 
 def simulate_reference_world(root: str | Path, image_size: tuple[int, int], frames: int, version: str) -> Path:

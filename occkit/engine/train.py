@@ -265,7 +265,7 @@ class _Trainer:
 
     def validate(self) -> dict:
         weights = self.ema.module if self.ema is not None else self.model
-        val_data = replace(self.experiment.data, split=self.experiment.train.val_split, augment=False)
+        val_data = replace(self.experiment.data, split=self.experiment.train.val_split, augment=False, history=0)
         return evaluate_model(weights, OccupancyDataset(val_data), self.experiment.train.batch_size,
                               self.experiment.train.workers, self.context)  # fmt: skip
 

@@ -30,6 +30,7 @@ from torch import Tensor, nn
 
 from occkit.experiment import Experiment
 from occkit.models.heads.occupancy import occupancy_prediction
+from occkit.models.temporal import StreamMemory, TemporalFusion
 from occkit.types import Batch, ModelOutput, OccPrediction
 
 __all__ = ["FIXED_CALIBRATION_RETIRED", "OccupancyModel", "Architecture", "Deployment", "CameraInputs", "camera_images",
@@ -45,7 +46,8 @@ class OccupancyModel(nn.Module, metaclass=abc.ABCMeta):
 
     Subclasses implement :meth:`plan`, :meth:`inputs`, :meth:`network` and :meth:`loss`; they override
     :meth:`deployment` when their graph takes more than camera images, and :meth:`predict` when it returns more than
-    the occupancy classes.
+    the occupancy classes. A temporal model also sets :attr:`temporal`, implements :meth:`frame_bev` and takes the
+    history inputs (:data:`~occkit.models.temporal.HISTORY_INPUTS`) in its network.
     """
 
     reuse_plan: bool = False
@@ -55,6 +57,9 @@ class OccupancyModel(nn.Module, metaclass=abc.ABCMeta):
     def __init__(self) -> None:
         super().__init__()
         self._reused: tuple[tuple, Any] | None = None
+        self.temporal: TemporalFusion | None = None
+        """The history stage of a temporal model (:mod:`occkit.models.temporal`, set by its ``__init__``); None for
+        single-frame models."""
 
     @abc.abstractmethod
     def plan(self, batch: Batch) -> Any:
@@ -87,13 +92,62 @@ class OccupancyModel(nn.Module, metaclass=abc.ABCMeta):
             self._reused = (key, self.plan(batch))
         return self._reused[1]
 
-    def forward(self, batch: Batch) -> ModelOutput:
-        return self.network(self.inputs(batch), self.current_plan(batch))
+    def forward(self, batch: Batch, *, memory: StreamMemory | None = None) -> ModelOutput:
+        """``network(inputs(batch), plan(batch))``; a temporal model's inputs also hold its history
+        (:meth:`history_inputs`), and with a ``memory`` the frame is one step of a stream: its history comes from
+        the memory and goes back into it."""
+        inputs = self.inputs(batch)
+        if self.temporal is not None:
+            inputs.update(self.history_inputs(batch, memory))
+        output = self.network(inputs, self.current_plan(batch))
+        if memory is not None and self.temporal is not None:
+            memory.push(output.history_state, batch.ego2global, batch.occ_aug)
+        return output
 
     @torch.no_grad()
-    def predict(self, batch: Batch) -> OccPrediction:
-        """Class ids ``(B, X, Y, Z)`` uint8."""
-        return occupancy_prediction(self.forward(batch).occupancy)
+    def predict(self, batch: Batch, *, memory: StreamMemory | None = None) -> OccPrediction:
+        """Class ids ``(B, X, Y, Z)`` uint8 (a stream step with a ``memory``)."""
+        return occupancy_prediction(self.forward(batch, memory=memory).occupancy)
+
+    # -------------------------------------------------------------------------------------------------- history
+    def frame_bev(self, images: Tensor, plan: Any) -> Tensor:
+        """A temporal model's BEV of one frame before fusion, ``(B, C, X, Y)``, from its ``images`` under ``plan``."""
+        raise NotImplementedError(f"{type(self).__name__} has no BEV history")
+
+    def stream(self) -> StreamMemory:
+        """An empty memory for streaming this (temporal) model over scenes in order (:meth:`forward`)."""
+        if self.temporal is None:
+            raise ValueError(f"{type(self).__name__} is a single-frame model: it has nothing to stream")
+        return StreamMemory(self.temporal)
+
+    def history_inputs(self, batch: Batch, memory: StreamMemory | None = None) -> dict[str, Tensor]:
+        """The history inputs of :meth:`network` (:data:`~occkit.models.temporal.HISTORY_INPUTS`).
+
+        From ``memory`` when streaming; else from the batch's earlier key frames (``DatasetConfig.history``), whose
+        BEVs are computed here without gradient; else, in evaluation only, none (every slot padded: the model sees
+        the current frame alone).
+        """
+        temporal = self.temporal
+        if temporal is None:
+            raise ValueError(f"{type(self).__name__} is a single-frame model")
+        images = camera_images(batch, type(self).__name__)
+        if memory is not None:
+            return memory.inputs(batch.scenes, batch.ego2global, batch.occ_aug, images.device, images.dtype)
+        if batch.history_images is None:
+            if self.training:
+                raise ValueError(f"{type(self).__name__} is temporal: training needs each sample's "
+                                 f"{temporal.cfg.history} earlier key frames (set data.history = "
+                                 f"{temporal.cfg.history})")
+            return temporal.empty_history(len(batch), images.device, images.dtype)
+        frames = []
+        with torch.no_grad():
+            for k in range(batch.history_images.shape[1]):
+                frame = dataclasses.replace(batch, images=batch.history_images[:, k],
+                                            intrinsics=batch.history_intrinsics[:, k],
+                                            cam2ego=batch.history_cam2ego[:, k], img_aug=batch.history_img_aug[:, k])
+                frames.append(temporal.pre_process(self.frame_bev(frame.images, self.plan(frame))))
+        return temporal.history_inputs(torch.stack(frames, dim=1), batch.history_ego2global, batch.ego2global,
+                                       batch.occ_aug, batch.history_padded)
 
 
 def camera_images(batch: Batch, model: str) -> Tensor:

@@ -27,11 +27,13 @@ from occkit.models.base import Architecture, OccupancyModel, camera_images
 from occkit.models.bev_encoder import BevEncoder, BevEncoderConfig
 from occkit.models.heads.occupancy import OccupancyHead, OccupancyHeadConfig
 from occkit.models.image_encoder import ImageEncoder, ImageEncoderConfig
+from occkit.models.temporal import HISTORY_INPUTS, TemporalConfig, TemporalFusion
 from occkit.models.view_transform.lss import LSSConfig, LSSViewTransform, PoolingPlan
 from occkit.nuscenes import CAMERAS
 from occkit.types import Batch, ModelOutput
 
-__all__ = ["FlashOccConfig", "FlashOcc", "ARCHITECTURE", "flashocc_m0", "flashocc_m1", "flashocc_tiny"]
+__all__ = ["FlashOccConfig", "FlashOcc", "ARCHITECTURE", "flashocc_m0", "flashocc_m1", "flashocc_m0_4d",
+           "flashocc_tiny"]
 
 
 @dataclass(frozen=True)
@@ -52,17 +54,27 @@ class FlashOccConfig:
     """BEV backbone and FPN_LSS neck (M0: 128 output channels; M1: 256)."""
     occupancy: OccupancyHeadConfig = field(default_factory=OccupancyHeadConfig)
     """Channel-to-height head and camera-masked CE."""
+    temporal: TemporalConfig | None = None
+    """BEV history (BEVDet4D's, FlashOcc's 4D models): the LSS BEV fused with earlier frames' before the BEV
+    encoder, whose ``in_channels`` is then ``temporal.out_channels(context)``; None: a single frame."""
 
     @property
     def sensors(self) -> tuple[str, ...]:
         """The sensors the model reads at inference (LiDAR, where the data loads it, only supervises)."""
         return ("cameras",)
 
+    @property
+    def fused_channels(self) -> int:
+        """Channels of the BEV entering the encoder: the LSS BEV's, or its fusion with the history's."""
+        channels = self.lss.context_channels * self.lss.grid_size[2]
+        return channels if self.temporal is None else self.temporal.out_channels(channels)
+
     def __post_init__(self) -> None:
         checks = {
             "lss.in_channels": (self.lss.in_channels, self.image.neck_channels, "image.neck_channels"),
-            "bev.in_channels": (self.bev.in_channels, self.lss.context_channels * self.lss.grid_size[2],
-                                "lss.context_channels x lss.grid_size[2]"),
+            "bev.in_channels": (self.bev.in_channels, self.fused_channels,
+                                "lss.context_channels x lss.grid_size[2]" + (" fused with the history by "
+                                                                             "temporal" if self.temporal else "")),
             "occupancy.in_channels": (self.occupancy.in_channels, self.bev.neck_channels, "bev.neck_channels"),
         }  # fmt: skip
         for key, (value, wanted, source) in checks.items():
@@ -84,6 +96,10 @@ class FlashOcc(OccupancyModel):
             raise ValueError(f"lss.feature_stride = {cfg.lss.feature_stride} but the image encoder's output stride"
                              f" is {self.image_encoder.stride}")
         self.view_transform = LSSViewTransform(cfg.lss)
+        if cfg.temporal is not None:
+            x_min, y_min, _, x_max, y_max, _ = cfg.lss.point_cloud_range
+            self.temporal = TemporalFusion(cfg.temporal, cfg.lss.context_channels * cfg.lss.grid_size[2],
+                                           (x_min, y_min, x_max, y_max), cfg.lss.grid_size[:2])
         self.bev_encoder = BevEncoder(cfg.bev)
         self.occupancy_head = OccupancyHead(cfg.occupancy)
 
@@ -95,11 +111,17 @@ class FlashOcc(OccupancyModel):
     def inputs(self, batch: Batch) -> dict[str, Tensor]:
         return {"images": camera_images(batch, "FlashOcc")}
 
+    def frame_bev(self, images: Tensor, plan: PoolingPlan) -> Tensor:
+        return self.view_transform(self.image_encoder(images), plan)[0]
+
     def network(self, inputs: Mapping[str, Tensor], plan: PoolingPlan) -> ModelOutput:
         features = self.image_encoder(inputs["images"])  # (B, N, 256, h, w)
         bev, depth = self.view_transform(features, plan)  # (B, 64, X, Y), (B, N, D, h, w)
+        state = None
+        if self.temporal is not None:  # (B, (K + 1) 64, X, Y) for BEVDet4D's concatenation
+            bev, state = self.temporal(bev, *(inputs[name] for name in HISTORY_INPUTS))
         logits = self.occupancy_head(self.bev_encoder(bev))
-        return ModelOutput(occupancy=logits, depth=depth)
+        return ModelOutput(occupancy=logits, depth=depth, history_state=state)
 
     def loss(self, output: ModelOutput, batch: Batch) -> dict[str, Tensor]:
         """The occupancy loss (FlashOcc M0/M1 have no depth supervision)."""
@@ -152,6 +174,20 @@ def flashocc_m1() -> Experiment:
     return Experiment("flashocc", model, DATA, TRAIN)
 
 
+def flashocc_m0_4d() -> Experiment:
+    """FlashOcc M0 with BEVDet4D's history: one earlier key frame, each frame's LSS BEV through ``pre_process`` (one
+    BasicBlock), the earlier one aligned by ego motion and concatenated into the BEV encoder (128 input channels).
+
+    FlashOcc publishes its temporal models with BEVStereo4D's stereo depth (M2, 37.84 mIoU), which occkit does not
+    implement; this row, M0 plus BEVDet4D's history without stereo, is not in the paper. The earlier frame runs
+    without gradient and is padded with the current one at the start of a scene, as in BEVDet4D.
+    """
+    cfg = _paper_model()
+    model = dataclasses.replace(cfg, temporal=TemporalConfig(history=1, fusion="concat"),
+                                bev=dataclasses.replace(cfg.bev, in_channels=2 * cfg.bev.in_channels))  # fmt: skip
+    return Experiment("flashocc", model, dataclasses.replace(DATA, history=1), TRAIN)
+
+
 def flashocc_tiny() -> Experiment:
     """FlashOcc's architecture scaled down for CPUs: ResNet-18 (one block per stage) C4/C5 at 128 x 352, 22 depth
     bins, 16 context channels, narrow BEV encoder, and a Lovasz term beside the cross-entropy (as daocc_tiny); the
@@ -171,11 +207,11 @@ ARCHITECTURE = Architecture(
     name="flashocc",
     config=FlashOccConfig,
     model=FlashOcc,
-    presets={f.__name__: f for f in (flashocc_m0, flashocc_m1, flashocc_tiny)},
+    presets={f.__name__: f for f in (flashocc_m0, flashocc_m1, flashocc_m0_4d, flashocc_tiny)},
     stages={
         "image_encoder": ("image_encoder",),
         "view_transform": ("view_transform",),
-        "fusion_bev_encoder": ("bev_encoder",),
+        "fusion_bev_encoder": ("temporal", "bev_encoder"),
         "heads": ("occupancy_head",),
     },
 )

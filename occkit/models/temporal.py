@@ -21,14 +21,15 @@ invalid and set to exactly zero; inside it, the half cell between the outermost 
 edge value (``padding_mode="border"``) instead of fading towards zero.
 
 **Short histories: concatenate and convolve** (:class:`ConcatFusion`). BEVDet4D (``bevdet4d.py`` of the FlashOcc
-code) has no layer of its own for the fusion: the current BEV and the K aligned earlier ones are concatenated on
-the channel axis, current first (``torch.cat(bev_feat_list, dim=1)``), and go straight into the BEV encoder, whose
-first layer is a BasicBlock (3x3 conv-BN-ReLU, 3x3 conv-BN, plus a shortcut that is a biased 3x3 conv without
-BatchNorm; ``CustomResNet`` with ``numC_input = C * (K + 1)``) at stride 2. :class:`ConcatFusion` is that block at
-stride 1 with ``C`` output channels, so its output is a ``(B, C, X, Y)`` BEV that the model's existing encoder takes
-unchanged. BEVDet4D's optional per-frame ``pre_process`` block (applied to each frame before alignment) and the
-choice of which frames to feed (its data pipeline repeats the key frame where an adjacent frame falls outside the
-scene) stay with the model.
+code) has no layer of its own for the fusion: each frame's BEV first goes through ``pre_process`` (one BasicBlock at
+stride 1, applied to every frame before alignment), then the current BEV and the K aligned earlier ones are
+concatenated on the channel axis, current first (``torch.cat(bev_feat_list, dim=1)``), and go straight into the BEV
+encoder, whose first layer is a BasicBlock (3x3 conv-BN-ReLU, 3x3 conv-BN, plus a shortcut that is a biased 3x3 conv
+without BatchNorm; ``CustomResNet`` with ``numC_input = C * (K + 1)``) at stride 2. :class:`ConcatFusion` is the
+alignment and the concatenation; :class:`TemporalFusion` adds ``pre_process``; the model's BEV encoder, built with
+``(K + 1) C`` input channels, is the convolution. The earlier frames run without gradient, as in BEVDet4D
+(``torch.no_grad()`` around the adjacent frames' ``prepare_bev_feat``), and at the start of a scene the missing
+frames repeat the current one with an identity transform (its data pipeline pads with the key frame).
 
 **Long histories: one recurrent state** (:class:`RecurrentFusion`). DA-Occ's 16-frame row (39.3 mIoU) fuses a long
 history at the BEV level; the long-history fusion it cites, SparseOcc's, and the BEV-level designs differ in what a
@@ -47,12 +48,24 @@ frame costs as the history grows:
 
 :class:`RecurrentFusion` follows VideoBEV, because a per-frame cost that does not grow with the history is what a
 16-frame history needs on occkit's CPU-sized models and in deployment, where the state is one ``(B, C, X, Y)``
-tensor carried from frame to frame: ``state_t = f([current_t, align(state_{t-1}), valid])`` with ``f`` the same
-BasicBlock as :class:`ConcatFusion` on ``2 C + 1`` channels. The valid mask is part of the input by default: after
-a turn or a long drive, part of the map is new ground every frame, and the mask tells the block where the aligned
-state is zero because nothing was there rather than because the features are zero. As SOLOFusion does at the start
-of a sequence, a missing state is replaced by the current frame itself. VideoBEV's temporal embedding (robustness
+tensor carried from frame to frame: ``state_t = f([current_t, align(state_{t-1}), valid])`` with ``f`` BEVDet4D's
+BasicBlock (that of its BEV encoder's first layer and of ``pre_process``) at stride 1 on ``2 C + 1`` channels.
+The valid mask is part of the input by default: after a turn or a long drive, part of the map is new ground every
+frame, and the mask tells the block where the aligned state is zero because nothing was there rather than because
+the features are zero. As SOLOFusion does at the start of a sequence, a missing state is replaced by the current
+frame itself. VideoBEV's temporal embedding (robustness
 to dropped frames) is not part of it.
+
+**Training and streaming** (:class:`TemporalFusion`, :class:`StreamMemory`). A training sample carries its K
+earlier key frames (``DatasetConfig.history``); the model computes their BEVs without gradient, as BEVDet4D does,
+and, for the recurrent fusion, unrolls the state over them oldest first, also without gradient, so that only the
+current frame's step is differentiated (SOLOFusion's detached history, truncated backpropagation of one step). At
+inference a stream computes every frame once: :class:`StreamMemory` keeps what the next frame needs (the last K
+pre-processed BEVs for the concatenation, the state for the recurrent fusion) with their poses, per batch row, and
+forgets a row's history when its scene changes. The recurrent state then reaches back to the start of the scene:
+the K of training is the window it learned on, not a limit of inference. The history enters the network as three
+explicit tensors (:data:`HISTORY_INPUTS`), and the network returns this frame's contribution to the memory
+(``ModelOutput.history_state``): an exported network takes the state in and gives it out.
 
 **Determinism.** Everything here runs on any device, with no host synchronisation (no ``.item()``). On the CPU the
 forward and backward passes are deterministic. On CUDA, ``grid_sample``'s backward accumulates the gradient of the
@@ -62,6 +75,9 @@ sampled map with atomic adds, so its gradient (not its forward) may differ from 
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+from typing import Literal
+
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
@@ -69,7 +85,8 @@ from torchvision.models.resnet import BasicBlock
 
 from occkit.geometry.se3 import invert_transform, transform_points
 
-__all__ = ["history_to_current", "align_bev", "ConcatFusion", "RecurrentFusion"]
+__all__ = ["history_to_current", "align_bev", "ConcatFusion", "RecurrentFusion", "TemporalConfig", "TemporalFusion",
+           "StreamMemory", "HISTORY_INPUTS"]
 
 BevRange = tuple[float, float, float, float]
 
@@ -188,15 +205,17 @@ def _fusion_block(in_channels: int, channels: int) -> nn.Module:
 
 
 class ConcatFusion(nn.Module):
-    """BEVDet4D's concatenate-and-convolve fusion of the current BEV with K aligned earlier ones.
+    """BEVDet4D's fusion of the current BEV with K aligned earlier ones: their concatenation, which the BEV encoder's
+    first layer convolves.
 
-    ``[current, aligned_1, ..., aligned_K (, valid_1, ..., valid_K)]`` on the channel axis -> BasicBlock
-    (conv3x3-BN-ReLU, conv3x3-BN, + conv3x3 shortcut, ReLU) -> ``(B, C, X, Y)``. A frame costs K warps and a block
-    whose input has ``(K + 1) C`` channels: for a few frames (BEVDet4D uses one; see :class:`RecurrentFusion` for
-    long histories).
+    ``[current, aligned_1, ..., aligned_K (, valid_1, ..., valid_K)]`` on the channel axis, ``out_channels =
+    (K + 1) C (+ K)``: the model's BEV encoder takes that many input channels (BEVDet4D's ``numC_input = C * (K +
+    1)``), so the fusion's convolution is the encoder's first BasicBlock, as in the reference. A frame costs K warps
+    and a first layer whose input grows with K: for a few frames (BEVDet4D uses one; see :class:`RecurrentFusion`
+    for long histories). No parameters.
 
     Args:
-        channels: C, the channels of every frame's BEV and of the output.
+        channels: C, the channels of every frame's BEV.
         history: K, the number of earlier frames, newest first.
         bev_range: ``(x_min, y_min, x_max, y_max)`` metres covered by every frame's map in its own frame.
         with_valid: also concatenate the K valid masks as float channels (BEVDet4D does not).
@@ -210,11 +229,10 @@ class ConcatFusion(nn.Module):
         self.history = history
         self.bev_range = _check_range(bev_range)
         self.with_valid = with_valid
-        in_channels = channels * (history + 1) + (history if with_valid else 0)
-        self.fuse = _fusion_block(in_channels, channels)
+        self.out_channels = channels * (history + 1) + (history if with_valid else 0)
 
     def forward(self, current: Tensor, history: Tensor, current_to_history: Tensor) -> Tensor:
-        """Fuse ``current`` with its aligned history.
+        """``current`` and its aligned history, concatenated.
 
         Args:
             current: ``(B, C, X, Y)``.
@@ -224,7 +242,7 @@ class ConcatFusion(nn.Module):
             current_to_history: ``(B, K, 4, 4)`` from :func:`history_to_current`, one per earlier frame.
 
         Returns:
-            ``(B, C, X, Y)``.
+            ``(B, out_channels, X, Y)``.
         """
         batch, channels, nx, ny = current.shape
         expected = (batch, self.history, self.channels, nx, ny)
@@ -242,7 +260,7 @@ class ConcatFusion(nn.Module):
         parts = [current, aligned.reshape(batch, self.history * channels, nx, ny)]
         if self.with_valid:
             parts.append(valid.reshape(batch, self.history, nx, ny).to(current.dtype))
-        return self.fuse(torch.cat(parts, dim=1))
+        return torch.cat(parts, dim=1)
 
 
 class RecurrentFusion(nn.Module):
@@ -336,3 +354,210 @@ class RecurrentFusion(nn.Module):
             if detach:
                 state = state.detach()
         return torch.stack(states, dim=1)
+
+
+#: The network inputs that carry the history, as :class:`StreamMemory` and :meth:`TemporalFusion.history_inputs`
+#: make them: ``history`` ``(B, S, C, X, Y)`` the memory's BEVs (S = K earlier frames for the concatenation, 1 state
+#: for the recurrent fusion), newest first; ``current_to_history`` ``(B, S, 4, 4)`` float32 from
+#: :func:`history_to_current`; ``history_padded`` ``(B, S)`` bool, True where a slot holds no earlier frame of the scene
+#: (the current frame stands in for it).
+HISTORY_INPUTS = ("history", "current_to_history", "history_padded")
+
+
+@dataclass(frozen=True)
+class TemporalConfig:
+    """Ego-motion-aligned BEV history (module docstring of :mod:`occkit.models.temporal`)."""
+
+    history: int = 1
+    """K, the earlier key frames a training sample carries (``DatasetConfig.history`` must equal it); for the
+    concatenation also the frames every prediction fuses, for the recurrent fusion the window it is trained on."""
+    fusion: Literal["concat", "recurrent"] = "concat"
+    """``concat``: BEVDet4D, the current BEV and K aligned earlier ones concatenated into the BEV encoder (whose
+    ``in_channels`` must be ``(K + 1) C``, plus K with ``with_valid``). ``recurrent``: VideoBEV-style, one fused state
+    carried from frame to frame at a cost independent of the history (the encoder takes C channels)."""
+    pre_process: bool = True
+    """BEVDet4D's ``pre_process``: one BasicBlock at stride 1 on every frame's BEV before alignment."""
+    with_valid: bool = False
+    """Give the fusion the aligned frames' valid masks (out-of-view cells) as channels; BEVDet4D does not."""
+
+    def __post_init__(self) -> None:
+        if self.history < 1:
+            raise ValueError(f"temporal.history must be >= 1, got {self.history}")
+        if self.fusion not in ("concat", "recurrent"):
+            raise ValueError(f"temporal.fusion must be 'concat' or 'recurrent', got {self.fusion!r}")
+
+    def out_channels(self, channels: int) -> int:
+        """Channels of the fused BEV the encoder takes, for frames of ``channels`` channels."""
+        if self.fusion == "recurrent":
+            return channels
+        return channels * (self.history + 1) + (self.history if self.with_valid else 0)
+
+    @property
+    def memory_frames(self) -> int:
+        """S, the slots a stream keeps: K BEVs for the concatenation, one state for the recurrent fusion."""
+        return self.history if self.fusion == "concat" else 1
+
+
+class TemporalFusion(nn.Module):
+    """A model's history stage: ``pre_process``, then the fusion of :class:`TemporalConfig`.
+
+    ``forward(bev, history, current_to_history, history_padded) -> (fused, state)``: ``fused`` goes on to the BEV
+    encoder, ``state`` is what a stream keeps of this frame (the pre-processed BEV for the concatenation, the new
+    state for the recurrent fusion), both from the inputs of :data:`HISTORY_INPUTS`.
+
+    Args:
+        cfg: the temporal settings.
+        channels: C of every frame's BEV.
+        bev_range: ``(x_min, y_min, x_max, y_max)`` metres the BEV covers in its (augmented) ego frame.
+        bev_size: ``(X, Y)`` cells of the BEV.
+    """
+
+    def __init__(self, cfg: TemporalConfig, channels: int, bev_range: BevRange, bev_size: tuple[int, int]) -> None:
+        super().__init__()
+        self.cfg = cfg
+        self.channels = channels
+        self.bev_range = _check_range(bev_range)
+        self.bev_size = (int(bev_size[0]), int(bev_size[1]))
+        self.pre_process = _fusion_block(channels, channels) if cfg.pre_process else nn.Identity()
+        self.fusion: ConcatFusion | RecurrentFusion = (
+            ConcatFusion(channels, cfg.history, bev_range, cfg.with_valid) if cfg.fusion == "concat"
+            else RecurrentFusion(channels, bev_range, cfg.with_valid))  # fmt: skip
+        self.out_channels = cfg.out_channels(channels)
+
+    @property
+    def memory_frames(self) -> int:
+        """S, the slots of ``history``."""
+        return self.cfg.memory_frames
+
+    def forward(self, bev: Tensor, history: Tensor, current_to_history: Tensor,
+                history_padded: Tensor) -> tuple[Tensor, Tensor]:  # fmt: skip
+        """Fuse this frame's BEV with its history.
+
+        Args:
+            bev: ``(B, C, X, Y)`` this frame's BEV, before ``pre_process``.
+            history: ``(B, S, C, X, Y)``, ``current_to_history`` ``(B, S, 4, 4)``, ``history_padded`` ``(B, S)``
+                bool: :data:`HISTORY_INPUTS`. Padded slots are ignored: the current frame stands in for them.
+
+        Returns:
+            fused: ``(B, out_channels, X, Y)``; state: ``(B, C, X, Y)`` this frame's slot of the memory.
+        """
+        frames = self.memory_frames
+        batch = bev.shape[0]
+        expected = (batch, frames, self.channels, *bev.shape[-2:])
+        if tuple(history.shape) != expected or tuple(history_padded.shape) != (batch, frames):
+            raise ValueError(f"history must be {expected} with history_padded ({batch}, {frames}), got "
+                             f"{tuple(history.shape)} and {tuple(history_padded.shape)}")
+        bev = self.pre_process(bev)
+        padded = history_padded.to(device=bev.device, dtype=torch.bool)
+        if isinstance(self.fusion, RecurrentFusion):
+            fused = self.fusion(bev, history[:, 0], current_to_history[:, 0], reset=padded[:, 0])
+            return fused, fused
+        # BEVDet4D's padding: the current frame with an identity transform.
+        history = torch.where(padded[..., None, None, None], bev[:, None], history)
+        identity = torch.eye(4, dtype=current_to_history.dtype, device=current_to_history.device)
+        current_to_history = torch.where(padded[..., None, None], identity, current_to_history)
+        return self.fusion(bev, history, current_to_history), bev
+
+    @torch.no_grad()
+    def history_inputs(self, frames: Tensor, history_ego2global: Tensor, ego2global: Tensor, occ_aug: Tensor,
+                       history_padded: Tensor) -> dict[str, Tensor]:  # fmt: skip
+        """:data:`HISTORY_INPUTS` from a sample's K earlier frames (training, or evaluation of a windowed history),
+        without gradient.
+
+        Args:
+            frames: ``(B, K, C, X, Y)`` the earlier frames' pre-processed BEVs, newest first.
+            history_ego2global: ``(B, K, 4, 4)`` their ego poses; ``ego2global`` ``(B, 4, 4)`` the current one.
+            occ_aug: ``(B, 4, 4)`` the sequence's one BEV augmentation.
+            history_padded: ``(B, K)`` bool, slots that repeat the current frame (the oldest ones).
+        """
+        batch, count = frames.shape[:2]
+        padded = history_padded.to(device=frames.device, dtype=torch.bool)
+
+        def to_current(earlier: Tensor, later: Tensor) -> Tensor:
+            return history_to_current(earlier, later, occ_aug, occ_aug).to(device=frames.device, dtype=frames.dtype)
+
+        if isinstance(self.fusion, ConcatFusion):
+            if count != self.cfg.history:
+                raise ValueError(f"the concatenation fuses {self.cfg.history} earlier frames; the batch has {count} "
+                                 f"(set data.history = {self.cfg.history})")
+            transforms = torch.stack([to_current(history_ego2global[:, k], ego2global) for k in range(count)], 1)
+            return {"history": frames, "current_to_history": transforms, "history_padded": padded}
+        # The recurrent state over the window, oldest first; a padded slot restarts it, so the state begins at the
+        # oldest real frame (its predecessor slot padded) and a frame with no real predecessor stays padded.
+        state = self.fusion(frames[:, count - 1])
+        for k in range(count - 2, -1, -1):
+            state = self.fusion(frames[:, k], state, to_current(history_ego2global[:, k + 1], history_ego2global[:, k]),
+                                reset=padded[:, k + 1])
+        transforms = to_current(history_ego2global[:, 0], ego2global)[:, None]
+        return {"history": state[:, None], "current_to_history": transforms, "history_padded": padded[:, :1]}
+
+    def empty_history(self, batch: int, device: torch.device, dtype: torch.dtype) -> dict[str, Tensor]:
+        """:data:`HISTORY_INPUTS` of frames with no history at all (every slot padded): the single-frame case."""
+        frames = self.memory_frames
+        return {"history": torch.zeros(batch, frames, self.channels, *self.bev_size, device=device, dtype=dtype),
+                "current_to_history": torch.eye(4, device=device, dtype=dtype).expand(batch, frames, 4, 4).clone(),
+                "history_padded": torch.ones(batch, frames, dtype=torch.bool, device=device)}  # fmt: skip
+
+
+class StreamMemory:
+    """What a temporal model carries from frame to frame of a stream: per batch row, its last frames' slots
+    (newest first) with their poses, BEV augmentations and scene.
+
+    Row ``b`` of consecutive batches is one stream; when its scene changes, its history is forgotten (every slot
+    padded), so a history never crosses scenes. Use one memory per stream of batches, :meth:`inputs` before the
+    network and :meth:`push` after it (:meth:`OccupancyModel.forward <occkit.models.base.OccupancyModel.forward>`
+    does both when given a memory).
+    """
+
+    def __init__(self, fusion: TemporalFusion) -> None:
+        self.fusion = fusion
+        self.states: Tensor | None = None
+        """``(B, S, C, X, Y)`` the slots, newest first."""
+        self.ego2global: Tensor | None = None
+        """``(B, S, 4, 4)`` float64 the poses of the frames in the slots."""
+        self.occ_aug: Tensor | None = None
+        """``(B, S, 4, 4)`` their BEV augmentations."""
+        self.filled: Tensor | None = None
+        """``(B, S)`` bool, slots holding an earlier frame of the row's current scene."""
+        self.scenes: list[str] = []
+
+    def reset(self) -> None:
+        """Forget every stream."""
+        self.states = self.ego2global = self.occ_aug = self.filled = None
+        self.scenes = []
+
+    def inputs(self, scenes: list[str], ego2global: Tensor, occ_aug: Tensor, device: torch.device,
+               dtype: torch.dtype) -> dict[str, Tensor]:  # fmt: skip
+        """:data:`HISTORY_INPUTS` for the next frame of every row.
+
+        Args:
+            scenes: ``B`` scene names of the frames.
+            ego2global: ``(B, 4, 4)`` their poses; ``occ_aug`` ``(B, 4, 4)`` their BEV augmentations.
+        """
+        batch = len(scenes)
+        if self.states is None or self.states.shape[0] != batch:
+            self.reset()
+            empty = self.fusion.empty_history(batch, device, dtype)
+            self.states = empty["history"]
+            self.ego2global = ego2global.double()[:, None].repeat(1, self.fusion.memory_frames, 1, 1)
+            self.occ_aug = occ_aug[:, None].repeat(1, self.fusion.memory_frames, 1, 1)
+            self.filled = ~empty["history_padded"]
+            self.scenes = list(scenes)
+        same = torch.tensor([a == b for a, b in zip(self.scenes, scenes, strict=True)], device=device)
+        self.filled = self.filled & same[:, None]
+        self.scenes = list(scenes)
+        slots = self.fusion.memory_frames
+        transforms = history_to_current(self.ego2global.flatten(0, 1), ego2global.double().repeat_interleave(slots, 0),
+                                        self.occ_aug.flatten(0, 1), occ_aug.repeat_interleave(slots, 0))
+        transforms = transforms.unflatten(0, (batch, slots)).to(device=device, dtype=dtype)
+        return {"history": self.states, "current_to_history": transforms, "history_padded": ~self.filled}
+
+    def push(self, state: Tensor, ego2global: Tensor, occ_aug: Tensor) -> None:
+        """Keep a frame's slot (``ModelOutput.history_state``, ``(B, C, X, Y)``) after :meth:`inputs`."""
+        if self.states is None:
+            raise RuntimeError("StreamMemory.push before inputs")
+        self.states = torch.cat([state.detach()[:, None], self.states[:, :-1]], dim=1)
+        self.ego2global = torch.cat([ego2global.double()[:, None], self.ego2global[:, :-1]], dim=1)
+        self.occ_aug = torch.cat([occ_aug[:, None], self.occ_aug[:, :-1]], dim=1)
+        filled = torch.ones_like(self.filled[:, :1])
+        self.filled = torch.cat([filled, self.filled[:, :-1]], dim=1)
