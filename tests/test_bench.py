@@ -10,7 +10,7 @@ import torch
 from torch import nn
 
 from occkit import zoo
-from occkit.bench import BenchConfig, format_report, load_sample, run_bench, stage_modules
+from occkit.bench import BenchConfig, format_report, load_sample, run_bench, single_frame_twin, stage_modules
 from occkit.cli import main
 from occkit.metrics.realtime import rt_miou, rt_miou_table
 from occkit.models import inference
@@ -159,6 +159,19 @@ def test_bench_result_structure(name, world):
     assert result["macs"] == macs.total
     assert sum(entry["macs"] for entry in result["stages"].values()) == macs.total
     assert ("macs_with_detection" in result) == (name == "daocc_tiny")
+
+
+def test_a_temporal_model_streams_its_scene_against_its_single_frame_twin(world):
+    result = run_bench(BenchConfig(model="da_occ_tiny_temporal", data=str(world), optimizations=(), **QUICK),
+                       log=lambda _: None)  # fmt: skip
+    stream = result["streaming"]
+    assert stream["frames"] == 2 and stream["fusion"] == "recurrent" and stream["history"] == 2
+    assert stream["memory_slots"] == 1 and stream["memory_bytes"] == 16 * 200 * 200 * 4
+    assert stream["latency_ms"]["median"] > 0 and stream["single_frame"]["latency_ms"]["median"] > 0
+    assert stream["latency_ratio"] > 0 and stream["single_frame"]["params"] < result["params"]
+    assert "streaming (recurrent, history 2" in format_report(result)
+    twin = single_frame_twin("da_occ_tiny_temporal")
+    assert twin.temporal is None and twin.cfg.bev.in_channels == 16
 
 
 def test_auto_fast_path_measures_each_step_and_survives_a_failing_compile(world, monkeypatch):

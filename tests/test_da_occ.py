@@ -394,5 +394,5 @@ def test_missing_lidar_maps_is_a_clear_error(synthetic_batch):
 def test_inconsistent_config_is_a_clear_error():
     with pytest.raises(ValueError, match="height_grid_size\\[2\\] = 8 must equal the height_range bins = 16"):
         DirectionAwareOccConfig(height_grid_size=(32, 32, 8))
-    with pytest.raises(ValueError, match=r"depth_net.context_channels = 32 must equal the context channels \(bev.in_channels"):
+    with pytest.raises(ValueError, match=r"depth_net.context_channels = 32 must equal the context channels \("):
         DirectionAwareOccConfig(depth_net=DepthNetConfig(context_channels=32))

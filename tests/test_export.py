@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 from pathlib import Path
 
 import pytest
@@ -14,8 +15,9 @@ from torch import nn
 from occkit import zoo
 from occkit.cli import main
 from occkit.export import ExportError, check_parity, export_onnx, operator_counts
+from occkit.geometry.se3 import make_transform, rotation_about_z
 from occkit.models.daocc import DAOcc
-from occkit.models.deployment import OUTPUT_NAME, DeployedNetwork, deploy
+from occkit.models.deployment import OUTPUT_NAME, STATE_NAME, DeployedNetwork, deploy
 from occkit.models.lidar_encoder import LidarEncoder, LidarEncoderConfig
 from occkit.models.sparse_rules import (
     ConvSpec,
@@ -172,6 +174,27 @@ def test_tiny_model_exports_with_standard_operators_and_matches_in_onnxruntime(n
     assert parity["passed"], parity
     assert parity["max_abs_diff"] < 1e-4 and parity["network_max_abs_diff"] < 1e-5
     assert parity["argmax_agreement"] == 1.0 and parity["voxels"] == 200 * 200 * 16
+
+
+def test_a_temporal_graph_takes_the_history_in_and_gives_the_state_out_over_a_streamed_scene(tmp_path):
+    exporter_available()
+    model = tiny_model("da_occ_tiny_temporal")
+    frames = []
+    for t in range(5):  # one scene: 2 m and 3 degrees per frame
+        frame = make_batch(batch_size=1, occupancy=False, seed=t, num_cameras=2, image_size=(128, 352))
+        yaw = torch.tensor(math.radians(3.0 * t))
+        frame.ego2global = make_transform(rotation_about_z(yaw), torch.tensor([2.0 * t, 0.0, 0.0])).double()[None]
+        frames.append(frame)
+    net = deploy(model, frames[0])
+    assert net.input_names == ["images", "history", "current_to_history", "history_padded"]
+    assert net.output_names == [OUTPUT_NAME, STATE_NAME]
+    summary = export_onnx(net, net.inputs(frames[0]), tmp_path / "temporal.onnx")
+    assert [spec["name"] for spec in summary["outputs"]] == [OUTPUT_NAME, STATE_NAME]
+    assert summary["outputs"][1]["shape"] == [1, 16, 200, 200] and "GridSample" in summary["op_types"]
+    parity = check_parity(tmp_path / "temporal.onnx", model, net, frames[0], frames)
+    assert parity["passed"], parity
+    assert parity["frames"] == 5 and max(parity["max_abs_diff_per_frame"]) <= 1e-3
+    assert parity["voxels"] == 5 * 200 * 200 * 16
 
 
 def test_daocc_graph_takes_any_lidar_sweep_of_the_rig(exported):

@@ -201,9 +201,14 @@ class DirectionAwareOccConfig:
                 checks[f"{name}.in_channels"] = (net.in_channels, self.image.neck_channels, "image.neck_channels")
                 checks[f"{name}.bins"] = (net.bins, bins, f"the {name[:-4]}_range bins")
         context = self.context_channels
-        if self.temporal is not None:
-            checks["bev.in_channels"] = (self.bev.in_channels, self.temporal.out_channels(context),
-                                         f"the {context} context channels fused with the history by temporal")
+        if self.temporal is not None and self.temporal.fusion == "concat":
+            # The encoder takes (K + 1) frames of context (+ K valid masks): its width fixes the context's.
+            frames, masks = self.temporal.history + 1, self.temporal.history if self.temporal.with_valid else 0
+            if (self.bev.in_channels - masks) % frames or context < 1:
+                raise ValueError(f"bev.in_channels = {self.bev.in_channels} must be {frames} x the context channels"
+                                 + (f" + {masks}" if masks else "") + f" (temporal: the current frame and "
+                                 f"{frames - 1} earlier ones concatenated" + (", with their valid masks)" if masks
+                                                                              else ")"))  # fmt: skip
         if self.depth_net is not None:
             checks["depth_net.context_channels"] = (self.depth_net.context_channels, context,
                                                     "the context channels (bev.in_channels without temporal)")
