@@ -698,7 +698,8 @@ def format_report(result: dict) -> str:
                          f"{step['speedup']:>8.3f}x  {kept}")  # fmt: skip
     if "streaming" in result:
         stream = result["streaming"]
-        lines += ["", f"  streaming ({stream['fusion']}, history {stream['history']}, {stream['frames']} frames "
+        history = "one state" if stream["fusion"] == "recurrent" else f"history {stream['history']}"
+        lines += ["", f"  streaming ({stream['fusion']}, {history}, {stream['frames']} frames "
                       f"cycled): {stream['latency_ms']['median']:.1f} ms per frame vs "
                       f"{stream['single_frame']['latency_ms']['median']:.1f} ms without history "
                       f"(x{stream['latency_ratio']:.3f}); memory {stream['memory_bytes'] / 2**20:.1f} MiB"]

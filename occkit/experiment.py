@@ -50,9 +50,11 @@ class TrainConfig:
     """The reference's samples per optimizer step over all processes; when set, accumulate is derived as
     global_batch / (batch_size x processes), which must divide it (8 GPUs x 4 = 32 is 4 x 8 on one GPU); 0 uses
     accumulate as given."""
-    sampler: Literal["random", "cbgs"] = "random"
-    """Training order: every sample once per epoch in random order, or CBGS (class-balanced grouping and sampling,
-    mmdetection3d's ``CBGSDataset``): samples duplicated per detection class so that every class is seen as often."""
+    sampler: Literal["random", "cbgs", "streams"] = "random"
+    """Training order: every sample once per epoch in random order; CBGS (class-balanced grouping and sampling,
+    mmdetection3d's ``CBGSDataset``): samples duplicated per detection class so that every class is seen as often; or
+    ``streams``, the scenes in random order dealt to ``batch_size`` streams per process, each scene's frames in time
+    order (what a recurrent temporal model trains on, its memory carried from step to step)."""
     load_from: str | None = None
     """Whole-model weights loaded before training (an occkit checkpoint or ``.safetensors``, or a reference
     checkpoint that ``occkit convert`` reads): partial and shape-checked, what is skipped is listed (FlashOcc starts

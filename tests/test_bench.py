@@ -165,11 +165,11 @@ def test_a_temporal_model_streams_its_scene_against_its_single_frame_twin(world)
     result = run_bench(BenchConfig(model="da_occ_tiny_temporal", data=str(world), optimizations=(), **QUICK),
                        log=lambda _: None)  # fmt: skip
     stream = result["streaming"]
-    assert stream["frames"] == 2 and stream["fusion"] == "recurrent" and stream["history"] == 2
+    assert stream["frames"] == 2 and stream["fusion"] == "recurrent" and stream["history"] == 0
     assert stream["memory_slots"] == 1 and stream["memory_bytes"] == 16 * 200 * 200 * 4
     assert stream["latency_ms"]["median"] > 0 and stream["single_frame"]["latency_ms"]["median"] > 0
     assert stream["latency_ratio"] > 0 and stream["single_frame"]["params"] < result["params"]
-    assert "streaming (recurrent, history 2" in format_report(result)
+    assert "streaming (recurrent, one state, 2 frames" in format_report(result)
     twin = single_frame_twin("da_occ_tiny_temporal")
     assert twin.temporal is None and twin.cfg.bev.in_channels == 16
 

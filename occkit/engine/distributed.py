@@ -16,8 +16,8 @@ import numpy as np
 import torch
 import torch.distributed as dist
 
-__all__ = ["Context", "setup", "teardown", "EpochSampler", "barrier", "broadcast_object", "broadcast_tensors",
-           "all_reduce_mean", "all_reduce_sum"]
+__all__ = ["Context", "setup", "teardown", "EpochSampler", "StreamSampler", "barrier", "broadcast_object",
+           "broadcast_tensors", "all_reduce_mean", "all_reduce_sum"]
 
 
 @dataclass(frozen=True)
@@ -185,3 +185,62 @@ class EpochSampler(torch.utils.data.Sampler[int]):
 
     def __len__(self) -> int:
         return len(self._indices())
+
+
+class StreamSampler(torch.utils.data.Sampler[int]):
+    """Streams of whole scenes, for a model that carries a memory from step to step (streamed training).
+
+    Per epoch the scenes are shuffled, seeded by ``(seed, epoch)``, and dealt one by one to the shortest of
+    ``batch_size x world_size`` streams; a stream is its scenes' frames in time order, one scene after the other.
+    Batch ``j`` of rank ``r`` holds frame ``j`` of streams ``r B .. r B + B - 1``. Every stream is cut to the
+    shortest one's length, so that all batches are full and every rank takes the same number of steps; the frames
+    cut off are dealt again, in another order, the next epoch. ``skip_batches`` drops the first batches of the
+    epoch, as :class:`EpochSampler`'s, so a resumed run continues where it stopped.
+    """
+
+    def __init__(self, scenes: Sequence[Sequence[int]], batch_size: int, rank: int = 0, world_size: int = 1,
+                 seed: int = 0) -> None:  # fmt: skip
+        """
+        Args:
+            scenes: the dataset indices of each scene's frames, in time order.
+            batch_size: streams per rank (samples per batch); rank, world_size: this process and their number.
+            seed: seed of the deals.
+
+        Raises:
+            ValueError: fewer scenes than streams (some stream would stay empty).
+        """
+        streams = batch_size * world_size
+        if len(scenes) < streams:
+            raise ValueError(f"streamed training needs a scene per stream: {len(scenes)} scenes for {batch_size} "
+                             f"samples per batch x {world_size} processes")
+        self.scenes = [list(scene) for scene in scenes]
+        self.batch_size, self.rank, self.world_size, self.seed = batch_size, rank, world_size, seed
+        self.epoch, self.skip_batches = 0, 0
+
+    def set_epoch(self, epoch: int, skip_batches: int = 0) -> None:
+        self.epoch, self.skip_batches = epoch, skip_batches
+
+    def streams(self) -> list[list[int]]:
+        """Every stream of this epoch (all ranks'), cut to the same length."""
+        generator = torch.Generator().manual_seed(self.seed * 1_000_003 + self.epoch)
+        streams: list[list[int]] = [[] for _ in range(self.batch_size * self.world_size)]
+        for scene in torch.randperm(len(self.scenes), generator=generator).tolist():
+            min(streams, key=len).extend(self.scenes[scene])
+        length = min(len(stream) for stream in streams)
+        return [stream[:length] for stream in streams]
+
+    def batches_per_epoch(self) -> int:
+        """Full batches of one epoch on this rank."""
+        return len(self.streams()[0])
+
+    def _indices(self) -> list[int]:
+        mine = self.streams()[self.rank * self.batch_size : (self.rank + 1) * self.batch_size]
+        order = [stream[j] for j in range(len(mine[0])) for stream in mine]
+        return order[self.skip_batches * self.batch_size :]
+
+    def __iter__(self) -> Iterator[int]:
+        return iter(self._indices())
+
+    def __len__(self) -> int:
+        return len(self._indices())
+

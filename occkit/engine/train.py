@@ -48,6 +48,7 @@ from occkit.engine.schedule import Schedule
 from occkit.experiment import Experiment, TrainConfig, check_label_space, experiment_yaml
 from occkit.metrics.evaluate import plot_per_class_iou
 from occkit.models import pretrained
+from occkit.models.temporal import StreamMemory
 from occkit.types import Batch
 
 __all__ = ["train", "ModelEMA", "TrainResult", "check_output_folder", "check_initial_weights", "accumulation"]
@@ -148,11 +149,18 @@ class _Trainer:
 
         self.accumulate = accumulation(cfg, context.world_size)
         self.dataset = OccupancyDataset(experiment.data)
-        population = None
-        if cfg.sampler == "cbgs":
-            population = cbgs_indices(self.dataset.sample_classes(), DETECTION_CLASSES, cfg.seed)
-        self.sampler = distributed.EpochSampler(len(self.dataset), cfg.batch_size, context.rank, context.world_size,
-                                                shuffle=True, seed=cfg.seed, population=population)  # fmt: skip
+        # A recurrent temporal model trains as it runs: each scene's frames in order, its memory carried along.
+        self.memory = _stream_memory(model, experiment)
+        if self.memory is not None:
+            self.sampler: distributed.EpochSampler | distributed.StreamSampler = distributed.StreamSampler(
+                scene_frames(self.dataset), cfg.batch_size, context.rank, context.world_size, seed=cfg.seed)
+        else:
+            population = None
+            if cfg.sampler == "cbgs":
+                population = cbgs_indices(self.dataset.sample_classes(), DETECTION_CLASSES, cfg.seed)
+            self.sampler = distributed.EpochSampler(len(self.dataset), cfg.batch_size, context.rank,
+                                                    context.world_size, shuffle=True, seed=cfg.seed,
+                                                    population=population)  # fmt: skip
         per_epoch = self.sampler.batches_per_epoch() // self.accumulate
         if per_epoch < 1:
             raise ValueError(f"the training split has {len(self.dataset)} samples, fewer than one optimizer step of "
@@ -192,6 +200,7 @@ class _Trainer:
             "best_miou": self.best_miou,
             "log_window": list(self.log_window),
             "rng": rng_state(),
+            "stream_memory": self.memory.state_dict() if self.memory is not None else None,
         }
 
     def restore(self, path: Path, allow_changes: Sequence[str] = ()) -> list[str]:
@@ -205,6 +214,8 @@ class _Trainer:
         self.scaler.load_state_dict(payload["scaler"])
         self.step, self.epoch, self.best_miou = payload["step"], payload["epoch"], payload["best_miou"]
         self.log_window = list(payload.get("log_window") or [])
+        if self.memory is not None and payload.get("stream_memory") is not None:
+            self.memory.load_state_dict(payload["stream_memory"])
         set_rng_state(payload["rng"])
         if self.context.distributed:  # one saved state, distinct per-rank draws from here on
             torch.manual_seed(self.experiment.train.seed + 7919 * self.step + self.context.rank)
@@ -225,7 +236,7 @@ class _Trainer:
     def forward_backward(self, batch: Batch) -> dict[str, float]:
         network = self.ddp or self.model
         with torch.autocast(self.context.device.type, dtype=self.amp_dtype, enabled=self.autocast):
-            output = network(batch)
+            output = network(batch) if self.memory is None else network(batch, memory=self.memory)
             losses = self.model.loss(output, batch)
         total = sum(losses.values())
         self.scaler.scale(total / self.accumulate).backward()
@@ -254,6 +265,8 @@ class _Trainer:
         self.dataset.set_epoch(self.epoch)
         self.dataset.refill = True  # on_error=skip: a sample that fails is replaced, so every batch stays full
         self.sampler.set_epoch(self.epoch, skip_batches)
+        if self.memory is not None and skip_batches == 0:
+            self.memory.reset()  # a new deal of scenes: a stream may begin with the scene the last epoch ended on
         workers = self.experiment.train.workers
         # A private generator: creating the iterator must not draw from the global RNG, or a resumed run would
         # draw at another moment than the uninterrupted one.
@@ -268,6 +281,32 @@ class _Trainer:
         val_data = replace(self.experiment.data, split=self.experiment.train.val_split, augment=False, history=0)
         return evaluate_model(weights, OccupancyDataset(val_data), self.experiment.train.batch_size,
                               self.experiment.train.workers, self.context)  # fmt: skip
+
+
+def scene_frames(dataset: OccupancyDataset) -> list[list[int]]:
+    """The dataset indices of each scene's frames, in time order (the dataset keeps each scene's frames in order)."""
+    scenes: dict[str, list[int]] = {}
+    for index, record in enumerate(dataset.records):
+        scenes.setdefault(record.scene, []).append(index)
+    return list(scenes.values())
+
+
+def _stream_memory(model: torch.nn.Module, experiment: Experiment) -> StreamMemory | None:
+    """The memory a streamed-training model carries from step to step, after checking that the settings stream it;
+    None for other models."""
+    temporal = getattr(model, "temporal", None)
+    streamed = temporal is not None and temporal.cfg.streamed_training
+    sampler = experiment.train.sampler
+    if streamed and sampler != "streams":
+        raise ValueError(f"{experiment.architecture} with a recurrent history trains on streams of frames: set "
+                         f"train.sampler: streams (got {sampler})")
+    if not streamed and sampler == "streams":
+        raise ValueError("train.sampler: streams is for models with a recurrent history (model.temporal.fusion: "
+                         "recurrent)")
+    if streamed and experiment.data.history:
+        raise ValueError(f"a streamed model takes its history from the stream: set data.history: 0 (got "
+                         f"{experiment.data.history})")
+    return model.stream() if streamed else None
 
 
 def _progress(context: distributed.Context, total: int, initial: int, enabled: bool):

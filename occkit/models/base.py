@@ -123,9 +123,10 @@ class OccupancyModel(nn.Module, metaclass=abc.ABCMeta):
     def history_inputs(self, batch: Batch, memory: StreamMemory | None = None) -> dict[str, Tensor]:
         """The history inputs of :meth:`network` (:data:`~occkit.models.temporal.HISTORY_INPUTS`).
 
-        From ``memory`` when streaming; else from the batch's earlier key frames (``DatasetConfig.history``), whose
-        BEVs are computed here without gradient; else, in evaluation only, none (every slot padded: the model sees
-        the current frame alone).
+        From ``memory`` when streaming (the recurrent fusion's training, and every model's inference); else from the
+        batch's earlier key frames (``DatasetConfig.history``, the concatenation's training), whose BEVs are computed
+        here without gradient; else, in evaluation only, none (every slot padded: the model sees the current frame
+        alone).
         """
         temporal = self.temporal
         if temporal is None:
@@ -134,6 +135,10 @@ class OccupancyModel(nn.Module, metaclass=abc.ABCMeta):
         if memory is not None:
             return memory.inputs(batch.scenes, batch.ego2global, batch.occ_aug, images.device, images.dtype)
         if batch.history_images is None:
+            if self.training and temporal.cfg.streamed_training:
+                raise ValueError(f"{type(self).__name__}'s recurrent history trains on streams: pass a memory "
+                                 "(model.stream()) with the frames of each scene in order (occkit train does, with "
+                                 "train.sampler: streams)")
             if self.training:
                 raise ValueError(f"{type(self).__name__} is temporal: training needs each sample's "
                                  f"{temporal.cfg.history} earlier key frames (set data.history = "

@@ -56,16 +56,18 @@ the features are zero. As SOLOFusion does at the start of a sequence, a missing 
 frame itself. VideoBEV's temporal embedding (robustness
 to dropped frames) is not part of it.
 
-**Training and streaming** (:class:`TemporalFusion`, :class:`StreamMemory`). A training sample carries its K
-earlier key frames (``DatasetConfig.history``); the model computes their BEVs without gradient, as BEVDet4D does,
-and, for the recurrent fusion, unrolls the state over them oldest first, also without gradient, so that only the
-current frame's step is differentiated (SOLOFusion's detached history, truncated backpropagation of one step). At
-inference a stream computes every frame once: :class:`StreamMemory` keeps what the next frame needs (the last K
-pre-processed BEVs for the concatenation, the state for the recurrent fusion) with their poses, per batch row, and
-forgets a row's history when its scene changes. The recurrent state then reaches back to the start of the scene:
-the K of training is the window it learned on, not a limit of inference. The history enters the network as three
-explicit tensors (:data:`HISTORY_INPUTS`), and the network returns this frame's contribution to the memory
-(``ModelOutput.history_state``): an exported network takes the state in and gives it out.
+**Training and streaming** (:class:`TemporalFusion`, :class:`StreamMemory`). The concatenation trains as BEVDet4D
+does: a sample carries its K earlier key frames (``DatasetConfig.history``), whose BEVs the model computes without
+gradient. The recurrent fusion trains as it runs, on streams (SOLOFusion's and VideoBEV's streaming training): the
+trainer feeds each scene's frames in time order (``train.sampler: streams``) and carries the memory from step to
+step, detached, so a step costs one frame and the state is trained at every age it reaches at inference. (Trained
+instead on windows of a few earlier frames and then streamed over whole scenes, the state drifts where it was
+never trained: on the synthetic world a tiny model trained on 2-frame windows lost 3.3 mIoU streamed against the
+same model evaluated on its windows.) At inference a stream computes every frame once: :class:`StreamMemory` keeps
+what the next frame needs (the last K pre-processed BEVs for the concatenation, the state for the recurrent fusion)
+with their poses, per batch row, and forgets a row's history when its scene changes. The history enters the
+network as three explicit tensors (:data:`HISTORY_INPUTS`), and the network returns this frame's contribution to
+the memory (``ModelOutput.history_state``): an exported network takes the state in and gives it out.
 
 **Determinism.** Everything here runs on any device, with no host synchronisation (no ``.item()``). On the CPU the
 forward and backward passes are deterministic. On CUDA, ``grid_sample``'s backward accumulates the gradient of the
@@ -368,23 +370,27 @@ HISTORY_INPUTS = ("history", "current_to_history", "history_padded")
 class TemporalConfig:
     """Ego-motion-aligned BEV history (module docstring of :mod:`occkit.models.temporal`)."""
 
-    history: int = 1
-    """K, the earlier key frames a training sample carries (``DatasetConfig.history`` must equal it); for the
-    concatenation also the frames every prediction fuses, for the recurrent fusion the window it is trained on."""
     fusion: Literal["concat", "recurrent"] = "concat"
     """``concat``: BEVDet4D, the current BEV and K aligned earlier ones concatenated into the BEV encoder (whose
-    ``in_channels`` must be ``(K + 1) C``, plus K with ``with_valid``). ``recurrent``: VideoBEV-style, one fused state
-    carried from frame to frame at a cost independent of the history (the encoder takes C channels)."""
+    ``in_channels`` must be ``(K + 1) C``, plus K with ``with_valid``); trained on samples that carry their K earlier
+    key frames. ``recurrent``: VideoBEV-style, one fused state carried from frame to frame at a cost independent of
+    the history (the encoder takes C channels); trained on streams, as it runs (``train.sampler`` ``streams``)."""
+    history: int = 1
+    """K, the earlier key frames the concatenation fuses (``DatasetConfig.history`` must equal it). 0 for the
+    recurrent fusion, whose state spans every earlier frame of the scene."""
     pre_process: bool = True
     """BEVDet4D's ``pre_process``: one BasicBlock at stride 1 on every frame's BEV before alignment."""
     with_valid: bool = False
     """Give the fusion the aligned frames' valid masks (out-of-view cells) as channels; BEVDet4D does not."""
 
     def __post_init__(self) -> None:
-        if self.history < 1:
-            raise ValueError(f"temporal.history must be >= 1, got {self.history}")
         if self.fusion not in ("concat", "recurrent"):
             raise ValueError(f"temporal.fusion must be 'concat' or 'recurrent', got {self.fusion!r}")
+        if self.fusion == "concat" and self.history < 1:
+            raise ValueError(f"temporal.history must be >= 1 for the concatenation, got {self.history}")
+        if self.fusion == "recurrent" and self.history != 0:
+            raise ValueError(f"temporal.history must be 0 for the recurrent fusion (its state spans the scene, and it "
+                             f"trains on streams of frames, not on samples with earlier frames), got {self.history}")
 
     def out_channels(self, channels: int) -> int:
         """Channels of the fused BEV the encoder takes, for frames of ``channels`` channels."""
@@ -396,6 +402,12 @@ class TemporalConfig:
     def memory_frames(self) -> int:
         """S, the slots a stream keeps: K BEVs for the concatenation, one state for the recurrent fusion."""
         return self.history if self.fusion == "concat" else 1
+
+    @property
+    def streamed_training(self) -> bool:
+        """Whether training runs the frames of each scene in order with the memory carried from step to step (the
+        recurrent fusion), rather than on samples that carry their earlier frames (the concatenation)."""
+        return self.fusion == "recurrent"
 
 
 class TemporalFusion(nn.Module):
@@ -461,8 +473,7 @@ class TemporalFusion(nn.Module):
     @torch.no_grad()
     def history_inputs(self, frames: Tensor, history_ego2global: Tensor, ego2global: Tensor, occ_aug: Tensor,
                        history_padded: Tensor) -> dict[str, Tensor]:  # fmt: skip
-        """:data:`HISTORY_INPUTS` from a sample's K earlier frames (training, or evaluation of a windowed history),
-        without gradient.
+        """:data:`HISTORY_INPUTS` of the concatenation from a sample's K earlier frames, without gradient.
 
         Args:
             frames: ``(B, K, C, X, Y)`` the earlier frames' pre-processed BEVs, newest first.
@@ -470,26 +481,17 @@ class TemporalFusion(nn.Module):
             occ_aug: ``(B, 4, 4)`` the sequence's one BEV augmentation.
             history_padded: ``(B, K)`` bool, slots that repeat the current frame (the oldest ones).
         """
-        batch, count = frames.shape[:2]
+        count = frames.shape[1]
+        if not isinstance(self.fusion, ConcatFusion):
+            raise ValueError("the recurrent fusion takes its history from a stream (StreamMemory), not from a "
+                             "sample's earlier frames: set data.history = 0")
+        if count != self.cfg.history:
+            raise ValueError(f"the concatenation fuses {self.cfg.history} earlier frames; the batch has {count} "
+                             f"(set data.history = {self.cfg.history})")
+        transforms = torch.stack([history_to_current(history_ego2global[:, k], ego2global, occ_aug, occ_aug)
+                                  for k in range(count)], dim=1).to(device=frames.device, dtype=frames.dtype)
         padded = history_padded.to(device=frames.device, dtype=torch.bool)
-
-        def to_current(earlier: Tensor, later: Tensor) -> Tensor:
-            return history_to_current(earlier, later, occ_aug, occ_aug).to(device=frames.device, dtype=frames.dtype)
-
-        if isinstance(self.fusion, ConcatFusion):
-            if count != self.cfg.history:
-                raise ValueError(f"the concatenation fuses {self.cfg.history} earlier frames; the batch has {count} "
-                                 f"(set data.history = {self.cfg.history})")
-            transforms = torch.stack([to_current(history_ego2global[:, k], ego2global) for k in range(count)], 1)
-            return {"history": frames, "current_to_history": transforms, "history_padded": padded}
-        # The recurrent state over the window, oldest first; a padded slot restarts it, so the state begins at the
-        # oldest real frame (its predecessor slot padded) and a frame with no real predecessor stays padded.
-        state = self.fusion(frames[:, count - 1])
-        for k in range(count - 2, -1, -1):
-            state = self.fusion(frames[:, k], state, to_current(history_ego2global[:, k + 1], history_ego2global[:, k]),
-                                reset=padded[:, k + 1])
-        transforms = to_current(history_ego2global[:, 0], ego2global)[:, None]
-        return {"history": state[:, None], "current_to_history": transforms, "history_padded": padded[:, :1]}
+        return {"history": frames, "current_to_history": transforms, "history_padded": padded}
 
     def empty_history(self, batch: int, device: torch.device, dtype: torch.dtype) -> dict[str, Tensor]:
         """:data:`HISTORY_INPUTS` of frames with no history at all (every slot padded): the single-frame case."""
@@ -551,6 +553,16 @@ class StreamMemory:
                                         self.occ_aug.flatten(0, 1), occ_aug.repeat_interleave(slots, 0))
         transforms = transforms.unflatten(0, (batch, slots)).to(device=device, dtype=dtype)
         return {"history": self.states, "current_to_history": transforms, "history_padded": ~self.filled}
+
+    def state_dict(self) -> dict:
+        """The memory as plain tensors and names (a training checkpoint keeps it, so a resumed stream goes on)."""
+        return {"states": self.states, "ego2global": self.ego2global, "occ_aug": self.occ_aug,
+                "filled": self.filled, "scenes": list(self.scenes)}  # fmt: skip
+
+    def load_state_dict(self, state: dict) -> None:
+        """Restore :meth:`state_dict`."""
+        self.states, self.ego2global, self.occ_aug = state["states"], state["ego2global"], state["occ_aug"]
+        self.filled, self.scenes = state["filled"], list(state["scenes"])
 
     def push(self, state: Tensor, ego2global: Tensor, occ_aug: Tensor) -> None:
         """Keep a frame's slot (``ModelOutput.history_state``, ``(B, C, X, Y)``) after :meth:`inputs`."""
