@@ -54,7 +54,8 @@ class TrainConfig:
     """Training order: every sample once per epoch in random order; CBGS (class-balanced grouping and sampling,
     mmdetection3d's ``CBGSDataset``): samples duplicated per detection class so that every class is seen as often; or
     ``streams``, the scenes in random order dealt to ``batch_size`` streams per process, each scene's frames in time
-    order (what a recurrent temporal model trains on, its memory carried from step to step)."""
+    order (what a recurrent temporal model trains on, its memory carried from step to step; a single-frame model
+    trained in that order is the control that separates the order from the history)."""
     load_from: str | None = None
     """Whole-model weights loaded before training (an occkit checkpoint or ``.safetensors``, or a reference
     checkpoint that ``occkit convert`` reads): partial and shape-checked, what is skipped is listed (FlashOcc starts

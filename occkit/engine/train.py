@@ -151,7 +151,7 @@ class _Trainer:
         self.dataset = OccupancyDataset(experiment.data)
         # A recurrent temporal model trains as it runs: each scene's frames in order, its memory carried along.
         self.memory = _stream_memory(model, experiment)
-        if self.memory is not None:
+        if cfg.sampler == "streams":  # any model may train in that order (a control for the temporal ones)
             self.sampler: distributed.EpochSampler | distributed.StreamSampler = distributed.StreamSampler(
                 scene_frames(self.dataset), cfg.batch_size, context.rank, context.world_size, seed=cfg.seed)
         else:
@@ -300,9 +300,6 @@ def _stream_memory(model: torch.nn.Module, experiment: Experiment) -> StreamMemo
     if streamed and sampler != "streams":
         raise ValueError(f"{experiment.architecture} with a recurrent history trains on streams of frames: set "
                          f"train.sampler: streams (got {sampler})")
-    if not streamed and sampler == "streams":
-        raise ValueError("train.sampler: streams is for models with a recurrent history (model.temporal.fusion: "
-                         "recurrent)")
     if streamed and experiment.data.history:
         raise ValueError(f"a streamed model takes its history from the stream: set data.history: 0 (got "
                          f"{experiment.data.history})")
