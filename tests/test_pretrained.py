@@ -146,7 +146,7 @@ def test_every_zoo_entry_can_start():
     for name in zoo.names():
         experiment = zoo.experiment(name)
         settings = pretrained.backbone_settings(experiment.model)
-        if name.endswith("_tiny"):
+        if "_tiny" in name:
             assert not settings, name
             model = zoo.build(name)
             pretrained.initialise(model)  # no error: nothing frozen at random
