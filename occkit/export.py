@@ -163,8 +163,7 @@ def load_sample(experiment: Any, data: str | Path | None = None, index: int | No
         record = dataset.records[frame]
         frames = []
         if scene:
-            order = sorted((i for i, r in enumerate(dataset.records) if r.scene == record.scene),
-                           key=lambda i: dataset.records[i].index_in_scene)  # fmt: skip
+            order = next(indices for indices in dataset.scene_indices() if frame in indices)
             frames = [collate([dataset[i]]) for i in order]
         source = {"index": frame, "token": record.token, **({"scene": record.scene, "frames": len(frames)}
                                                             if scene else {})}  # fmt: skip

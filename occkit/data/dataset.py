@@ -246,6 +246,14 @@ class OccupancyDataset(torch.utils.data.Dataset):
             break
         return records
 
+    def scene_indices(self) -> list[list[int]]:
+        """The sample indices of each scene, in time order (``index_in_scene``), the scenes in the split's order:
+        the streams a temporal model runs over (evaluation, streamed training, the benchmark)."""
+        scenes: dict[str, list[int]] = {}
+        for index, record in enumerate(self.records):
+            scenes.setdefault(record.scene, []).append(index)
+        return [sorted(indices, key=lambda i: self.records[i].index_in_scene) for indices in scenes.values()]
+
     def sample_classes(self) -> list[frozenset[str]]:
         """The detection classes (:data:`~occkit.classes.DETECTION_CLASSES`) among each sample's boxes, as
         mmdetection3d's ``NuScenesDataset.get_cat_ids``: with ``valid_boxes_only``, of the boxes with a LiDAR or

@@ -52,9 +52,7 @@ def split_loader(dataset: OccupancyDataset, batch_size: int, workers: int, conte
     the split's order, which is each scene's frames in time order."""
     rank, world = (context.rank, context.world_size) if context is not None else (0, 1)
     if by_scene:
-        scenes = list(dict.fromkeys(record.scene for record in dataset.records))
-        mine = set(scenes[rank::world])
-        population = [i for i, record in enumerate(dataset.records) if record.scene in mine]
+        population = [index for scene in dataset.scene_indices()[rank::world] for index in scene]
         sampler = distributed.EpochSampler(len(dataset), batch_size, shuffle=False, population=population)
     else:
         sampler = distributed.EpochSampler(len(dataset), batch_size, rank, world, shuffle=False)

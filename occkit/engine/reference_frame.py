@@ -55,9 +55,8 @@ def load_scene_frames(data: DatasetConfig, root: str | Path, batch_size: int = 1
     if not root.is_dir():
         raise FileNotFoundError(f"dataset root {root} does not exist")
     dataset = _inputs_of(data, root)
-    scene = dataset.records[-1].scene
-    indices = sorted((i for i, record in enumerate(dataset.records) if record.scene == scene),
-                     key=lambda i: dataset.records[i].index_in_scene)  # fmt: skip
+    last = len(dataset) - 1
+    indices = next(scene for scene in dataset.scene_indices() if last in scene)
     return [collate([dataset[i]] * batch_size) for i in indices]
 
 

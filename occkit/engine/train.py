@@ -153,7 +153,7 @@ class _Trainer:
         self.memory = _stream_memory(model, experiment)
         if cfg.sampler == "streams":  # any model may train in that order (a control for the temporal ones)
             self.sampler: distributed.EpochSampler | distributed.StreamSampler = distributed.StreamSampler(
-                scene_frames(self.dataset), cfg.batch_size, context.rank, context.world_size, seed=cfg.seed)
+                self.dataset.scene_indices(), cfg.batch_size, context.rank, context.world_size, seed=cfg.seed)
         else:
             population = None
             if cfg.sampler == "cbgs":
@@ -281,14 +281,6 @@ class _Trainer:
         val_data = replace(self.experiment.data, split=self.experiment.train.val_split, augment=False, history=0)
         return evaluate_model(weights, OccupancyDataset(val_data), self.experiment.train.batch_size,
                               self.experiment.train.workers, self.context)  # fmt: skip
-
-
-def scene_frames(dataset: OccupancyDataset) -> list[list[int]]:
-    """The dataset indices of each scene's frames, in time order (the dataset keeps each scene's frames in order)."""
-    scenes: dict[str, list[int]] = {}
-    for index, record in enumerate(dataset.records):
-        scenes.setdefault(record.scene, []).append(index)
-    return list(scenes.values())
 
 
 def _stream_memory(model: torch.nn.Module, experiment: Experiment) -> StreamMemory | None:
