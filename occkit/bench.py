@@ -241,22 +241,52 @@ def stage_modules(architecture: str, model: nn.Module) -> dict[str, list[nn.Modu
 
 
 class StageTimer:
-    """Wall time spent inside each stage's modules during forward passes, from forward pre- and post-hooks.
+    """Wall time spent inside each stage's modules, from forward pre- and post-hooks, and optionally in each stage's
+    backward.
 
-    Use as a context manager around the passes; :attr:`seconds` accumulates until :meth:`reset`. On CUDA each hook
-    synchronizes, so a stage's time includes its kernels (and the passes run without CPU/GPU overlap at the stage
-    boundaries, which is why the total latency is timed without hooks).
+    Use as a context manager around the passes; :attr:`seconds` (forward) and :attr:`backward_seconds` accumulate
+    until :meth:`reset`. On CUDA each hook synchronizes, so a stage's time includes its kernels (and the passes run
+    without CPU/GPU overlap at the stage boundaries, which is why the total latency is timed without hooks).
+
+    Backward (``backward=True``): a hook on each stage output's gradient stamps the moment the backward reaches that
+    stage. Autograd runs a CPU graph in reverse creation order, so a stage's backward lasts from its stamp to the
+    stamp of the stage whose forward ran just before it (the first stage's, to the end of the backward, which the
+    caller marks with :meth:`backward_done`). What runs between the backward's start and the first stamp (the loss
+    terms' own backward) is :attr:`loss_backward_seconds`.
     """
 
-    def __init__(self, stages: dict[str, list[nn.Module]], synchronize: Callable[[], None]) -> None:
+    def __init__(self, stages: dict[str, list[nn.Module]], synchronize: Callable[[], None],
+                 backward: bool = False) -> None:  # fmt: skip
         self.stages = stages
         self.synchronize = synchronize
-        self.seconds = dict.fromkeys(stages, 0.0)
+        self.backward = backward
+        self.reset()
         self._started: dict[int, float] = {}
         self._handles: list = []
 
     def reset(self) -> None:
         self.seconds = dict.fromkeys(self.stages, 0.0)
+        self.backward_seconds = dict.fromkeys(self.stages, 0.0)
+        self.loss_backward_seconds = 0.0
+        self._forward_order: list[tuple[str, int]] = []  # (stage, call number) in forward order
+        self._reached: dict[int, float] = {}  # call number -> when its output's gradient arrived
+
+    def backward_started(self) -> None:
+        """Mark the start of a backward pass (call just before ``loss.backward()``)."""
+        self.synchronize()
+        self._backward_start = time.perf_counter()
+
+    def backward_done(self) -> None:
+        """Mark the end of a backward pass: share its time among the stages, then forget this pass's calls."""
+        self.synchronize()
+        end = time.perf_counter()
+        reached = sorted((when, call) for call, when in self._reached.items())
+        stage_of = dict((call, stage) for stage, call in self._forward_order)
+        if reached:
+            self.loss_backward_seconds += reached[0][0] - self._backward_start
+        for (when, call), following in zip(reached, [*reached[1:], (end, None)], strict=True):
+            self.backward_seconds[stage_of[call]] += following[0] - when
+        self._forward_order, self._reached = [], {}
 
     def _start(self, module: nn.Module, args: tuple) -> None:
         self.synchronize()
@@ -266,8 +296,21 @@ class StageTimer:
         def stop(module: nn.Module, args: tuple, output: object) -> None:
             self.synchronize()
             self.seconds[stage] += time.perf_counter() - self._started.pop(id(module))
+            if self.backward and torch.is_grad_enabled():
+                call = len(self._forward_order)
+                self._forward_order.append((stage, call))
+                for tensor in _tensors(output):
+                    if tensor.requires_grad:
+                        tensor.register_hook(self._stamper(call))
 
         return stop
+
+    def _stamper(self, call: int) -> Callable:
+        def stamp(grad: Tensor) -> None:
+            self.synchronize()
+            self._reached.setdefault(call, time.perf_counter())  # the first of the call's outputs to be reached
+
+        return stamp
 
     def __enter__(self) -> StageTimer:
         for stage, modules in self.stages.items():
@@ -280,6 +323,20 @@ class StageTimer:
         for handle in self._handles:
             handle.remove()
         self._handles.clear()
+
+
+def _tensors(value: object) -> list[Tensor]:
+    """The tensors in a module output: a tensor, a (nested) tuple, list or dict of them, or a dataclass."""
+    if isinstance(value, Tensor):
+        return [value]
+    if isinstance(value, (list, tuple)):
+        return [t for item in value for t in _tensors(item)]
+    if isinstance(value, dict):
+        return [t for item in value.values() for t in _tensors(item)]
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        return [t for field in dataclasses.fields(value) for t in _tensors(getattr(value, field.name))]
+    features = getattr(value, "features", None)  # a sparse tensor
+    return [features] if isinstance(features, Tensor) else []
 
 
 def _percentile(values: list[float], q: float) -> float:

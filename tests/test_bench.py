@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import copy
 import json
+import time
 
 import pytest
 import torch
@@ -226,3 +227,50 @@ def test_bench_cli_bad_input(arguments, message, tmp_path, capsys):
     assert main(["bench", *arguments, "--out", str(tmp_path / "b.json")]) == 2
     error = capsys.readouterr().err.strip()
     assert error.startswith("occkit bench: error:") and message in error and "\n" not in error
+
+
+class _SlowBackward(torch.autograd.Function):
+    """Identity whose backward waits ``seconds``: a stage whose backward is known to dominate."""
+
+    @staticmethod
+    def forward(ctx, x, seconds):
+        ctx.seconds = seconds
+        return x.clone()
+
+    @staticmethod
+    def backward(ctx, grad):
+        time.sleep(ctx.seconds)
+        return grad, None
+
+
+class _Stage(nn.Module):
+    def __init__(self, seconds: float = 0.0) -> None:
+        super().__init__()
+        self.linear = nn.Linear(8, 8)
+        self.seconds = seconds
+
+    def forward(self, x):
+        return _SlowBackward.apply(self.linear(x), self.seconds)
+
+
+def test_stage_timer_splits_the_backward_by_stage():
+    """The backward is shared among the stages in reverse forward order: the stamps partition it, and the stage
+    whose backward sleeps gets that time."""
+    from occkit.bench import StageTimer
+
+    first, slow, last = _Stage(), _Stage(seconds=0.05), _Stage()
+    stages = {"first": [first], "slow": [slow], "last": [last]}
+    with StageTimer(stages, lambda: None, backward=True) as timer:
+        loss = last(slow(first(torch.randn(4, 8)))).square().sum()
+        started = time.perf_counter()
+        timer.backward_started()
+        loss.backward()
+        timer.backward_done()
+        elapsed = time.perf_counter() - started
+    assert set(timer.backward_seconds) == {"first", "slow", "last"}
+    assert all(seconds > 0 for seconds in timer.backward_seconds.values())
+    assert timer.backward_seconds["slow"] >= 0.05
+    assert timer.backward_seconds["slow"] > timer.backward_seconds["first"] + timer.backward_seconds["last"]
+    covered = sum(timer.backward_seconds.values()) + timer.loss_backward_seconds
+    assert covered == pytest.approx(elapsed, abs=0.01)  # the intervals partition the backward
+    assert all(seconds > 0 for seconds in timer.seconds.values())  # forward times as before

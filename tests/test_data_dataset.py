@@ -396,3 +396,10 @@ def test_the_json_cache_of_an_older_occkit_is_replaced(root, tmp_path):
     old.write_text('{"format": "occkit-index/1", "version": "v1.0-synth", "root": "r", "records": [\n]}\n')
     with pytest.raises(IndexFormatError, match=r"0\.json: a JSON index of an older occkit .* rebuild it with `occkit"):
         _dataset(data, cameras=(), index=str(old))
+
+
+def test_depth_maps_without_lidar_are_refused_when_configured():
+    from occkit.data.dataset import DatasetConfig
+
+    with pytest.raises(ValueError, match="depth_downsample = 16 needs the LiDAR key frame, but sweeps = -1"):
+        DatasetConfig(sweeps=-1, depth_downsample=16)

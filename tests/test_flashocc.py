@@ -62,3 +62,22 @@ def test_predict_and_failed_cameras(synthetic_batch):
 def test_inconsistent_config_is_a_clear_error():
     with pytest.raises(ValueError, match="occupancy.in_channels = 128 must equal bev.neck_channels = 256"):
         dataclasses.replace(FlashOccConfig(), bev=dataclasses.replace(FlashOccConfig().bev, neck_channels=256))
+
+
+def test_depth_supervision_is_optional_and_trains_the_depth_net(synthetic_batch):
+    """depth_weight adds BEVDepth's depth BCE against the LiDAR depth maps; without the maps it is a clear error."""
+    torch.manual_seed(0)
+    cfg = dataclasses.replace(zoo.experiment("flashocc_tiny").model, depth_weight=3.0)
+    model = FlashOcc(cfg).train()
+    batch = synthetic_batch(batch_size=1, image_size=(64, 176), depth_stride=16)
+    output = model(batch)
+    losses = model.loss(output, batch)
+    assert "depth" in losses and losses["depth"] > 0
+    depth_only = FlashOcc(dataclasses.replace(cfg, depth_weight=1.0))
+    depth_only.load_state_dict(model.state_dict())
+    torch.testing.assert_close(depth_only.loss(output, batch)["depth"], losses["depth"] / 3.0)
+    losses["depth"].backward()
+    assert model.view_transform.depth_net.weight.grad.abs().sum() > 0
+    batch.depth_maps = None
+    with pytest.raises(ValueError, match="FlashOcc's depth loss needs LiDAR depth maps: set data.depth_downsample = 1"):
+        model.loss(output, batch)

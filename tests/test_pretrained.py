@@ -4,6 +4,8 @@ cache folder the tests fill, or their download is made to fail."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import pytest
 import torch
 import torchvision
@@ -68,6 +70,20 @@ def test_detector_checkpoints_give_their_backbone(tmp_path, prefix):
     state["roi_head.bbox_head.0.fc_cls.weight"] = torch.zeros(11, 1024)
     torch.save({"meta": {"epoch": 20, "CLASSES": ("car", "truck")}, "state_dict": state}, tmp_path / "htc.pth")
     _assert_same(_loaded(str(tmp_path / "htc.pth")), reference)
+
+
+def test_an_occkit_checkpoint_starts_another_architectures_backbone(tmp_path):
+    """One trained model's backbone starts another model with the same ResNet (the occkit checkpoint's ``model``,
+    its image encoder's backbone picked out, the neck and heads left)."""
+    torch.manual_seed(5)
+    trained = zoo.build("daocc_tiny")
+    torch.save({"architecture": "daocc", "step": 3, "model": trained.state_dict()}, tmp_path / "step-00000003.pt")
+    cfg = zoo.experiment("flashocc_tiny").model
+    model = zoo.build_from_config("flashocc", dataclasses.replace(
+        cfg, image=dataclasses.replace(cfg.image, pretrained=str(tmp_path / "step-00000003.pt"))))
+    assert pretrained.initialise(model) == [str(tmp_path / "step-00000003.pt")]
+    for name, value in trained.image_encoder.backbone.state_dict().items():
+        torch.testing.assert_close(model.image_encoder.backbone.state_dict()[name], value)
 
 
 def test_timm_resnet_state_dicts_share_torchvision_names(tmp_path):

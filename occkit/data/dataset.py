@@ -128,6 +128,11 @@ class DatasetConfig:
     seed: int = 0
     """Seed of the augmentation draws."""
 
+    def __post_init__(self) -> None:
+        if self.depth_downsample and self.sweeps < 0:
+            raise ValueError(f"depth_downsample = {self.depth_downsample} needs the LiDAR key frame, but sweeps = "
+                             f"{self.sweeps} loads no LiDAR: set sweeps to 0 (the key frame) or more")
+
 
 #: Bytes per point of a nuScenes ``.pcd.bin``: five float32 (x, y, z, intensity, ring index).
 POINT_BYTES = 20

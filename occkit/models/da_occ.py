@@ -69,7 +69,7 @@ from occkit.losses import (
 from occkit.models.base import FIXED_CALIBRATION_RETIRED, Architecture, OccupancyModel, camera_images
 from occkit.models.bev_encoder import BevEncoder, BevEncoderConfig
 from occkit.models.dac import DACBlock
-from occkit.models.heads.depth import DepthNet, DepthNetConfig, camera_parameters
+from occkit.models.heads.depth import DepthNet, DepthNetConfig, camera_parameters, lidar_target
 from occkit.models.heads.occupancy import OccupancyHead, OccupancyHeadConfig
 from occkit.models.image_encoder import ImageEncoder, ImageEncoderConfig
 from occkit.models.temporal import HISTORY_INPUTS, TemporalConfig, TemporalFusion
@@ -350,10 +350,10 @@ class DirectionAwareOcc(OccupancyModel):
         labels, mask = batch.voxel_semantics, batch.mask_camera if self.cfg.occupancy.use_mask else None
         losses: dict[str, Tensor] = {}
         if w.depth:
-            maps = self._lidar_map(batch.depth_maps, output.depth, "depth")
+            maps = lidar_target(batch.depth_maps, output.depth, "depth", "DA-Occ", self.cfg.feature_stride)
             losses["depth"] = w.depth * depth_bce(output.depth, maps, self.cfg.depth_range)
         if self.height_net is not None and w.height:
-            maps = self._lidar_map(batch.height_maps, output.height, "height")
+            maps = lidar_target(batch.height_maps, output.height, "height", "DA-Occ", self.cfg.feature_stride)
             losses["height"] = w.height * height_bce(output.height, maps, self.cfg.height_range)
         # The head's own loss: its class balance and optional Lovasz term apply as in the other models.
         losses.update({name: (w.occupancy if name == "occupancy" else 1.0) * term
@@ -364,16 +364,6 @@ class DirectionAwareOcc(OccupancyModel):
             output.occupancy, labels, self.cfg.occupancy.free_index, mask
         )
         return losses
-
-    def _lidar_map(self, maps: Tensor | None, predicted: Tensor, name: str) -> Tensor:
-        """The batch's LiDAR ``name`` maps ``(B, N, h, w)``, checked against the predicted bins ``(B, N, K, h, w)``."""
-        if maps is None:
-            raise ValueError(f"DA-Occ's {name} loss needs LiDAR depth and height maps: set "
-                             f"DatasetConfig.depth_downsample = {self.cfg.feature_stride}")
-        if maps.shape[-2:] != predicted.shape[-2:]:
-            raise ValueError(f"{name} maps are {tuple(maps.shape[-2:])} but the features are "
-                             f"{tuple(predicted.shape[-2:])}: depth_downsample must equal the feature stride")
-        return maps
 
 
 # ------------------------------------------------------------------------------------------------- zoo presets

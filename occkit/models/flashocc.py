@@ -23,8 +23,10 @@ from torch import Tensor
 from occkit.data.dataset import DatasetConfig
 from occkit.experiment import CPU_TRAIN, Experiment, TrainConfig, cpu_data, reproduces
 from occkit.label_space import OCC3D_SPACE
+from occkit.losses import depth_bce
 from occkit.models.base import Architecture, OccupancyModel, camera_images
 from occkit.models.bev_encoder import BevEncoder, BevEncoderConfig
+from occkit.models.heads.depth import lidar_target
 from occkit.models.heads.occupancy import OccupancyHead, OccupancyHeadConfig
 from occkit.models.image_encoder import ImageEncoder, ImageEncoderConfig
 from occkit.models.temporal import HISTORY_INPUTS, TemporalConfig, TemporalFusion
@@ -54,6 +56,10 @@ class FlashOccConfig:
     """BEV backbone and FPN_LSS neck (M0: 128 output channels; M1: 256)."""
     occupancy: OccupancyHeadConfig = field(default_factory=OccupancyHeadConfig)
     """Channel-to-height head and camera-masked CE."""
+    depth_weight: float = 0.0
+    """Weight of BEVDepth's depth BCE of the LSS depth bins against LiDAR depth, training only (the data then loads
+    depth maps: ``data.depth_downsample = lss.feature_stride``). 0 in M0 and M1, which train without depth
+    supervision, as the paper does; the CPU-sized entry uses it to learn geometry in a short schedule."""
     temporal: TemporalConfig | None = None
     """BEV history (BEVDet4D's, FlashOcc's 4D models): the LSS BEV fused with earlier frames' before the BEV
     encoder, whose ``in_channels`` is then ``temporal.out_channels(context)``; None: a single frame."""
@@ -124,10 +130,14 @@ class FlashOcc(OccupancyModel):
         return ModelOutput(occupancy=logits, depth=depth, history_state=state)
 
     def loss(self, output: ModelOutput, batch: Batch) -> dict[str, Tensor]:
-        """The occupancy loss (FlashOcc M0/M1 have no depth supervision)."""
+        """The occupancy loss and, with ``depth_weight``, the depth BCE (FlashOcc M0/M1 have no depth supervision)."""
         if batch.voxel_semantics is None:
             raise ValueError("the occupancy loss needs batch.voxel_semantics")
-        return self.occupancy_head.loss(output.occupancy, batch.voxel_semantics, batch.mask_camera)
+        losses = self.occupancy_head.loss(output.occupancy, batch.voxel_semantics, batch.mask_camera)
+        if self.cfg.depth_weight:
+            maps = lidar_target(batch.depth_maps, output.depth, "depth", "FlashOcc", self.cfg.lss.feature_stride)
+            losses["depth"] = self.cfg.depth_weight * depth_bce(output.depth, maps, self.cfg.lss.depth_range)
+        return losses
 
 
 

@@ -12,7 +12,10 @@ A setting is one of
 * a local file: a torchvision / timm ResNet state dict (``.pth``, ``.pt``, ``.bin`` or ``.safetensors``), or an
   mmdetection / mmdetection3d checkpoint whose backbone keys (under ``backbone.``, ``img_backbone.`` or
   ``encoders.camera.backbone.``) are picked out: mmdet's "pytorch"-style ResNet names its parameters as torchvision
-  does, so a nuImages detector's backbone loads as it is.
+  does, so a nuImages detector's backbone loads as it is;
+* an occkit checkpoint (``occkit train``'s ``step-*.pt``, or its ``.safetensors`` weights): the backbone of its image
+  encoder, under ``image_encoder.backbone.``, so that one trained model's backbone starts another of any architecture
+  with the same ResNet.
 
 Building a model never reads weights (a model built for counting parameters or for a test needs no file);
 :func:`initialise` loads them into every backbone of a built model, which ``occkit train`` does before the first step
@@ -41,8 +44,8 @@ __all__ = ["PretrainedUnavailable", "parse", "needed_file", "backbone_state", "i
 SETTING = "model.image.pretrained"
 
 #: Key prefixes under which detector checkpoints keep their image backbone (mmdet, BEVDet / FlashOcc, BEVFusion /
-#: DAOcc), tried in this order after an optional DistributedDataParallel ``module.``.
-_BACKBONE_PREFIXES = ("backbone.", "img_backbone.", "encoders.camera.backbone.")
+#: DAOcc, occkit), tried in this order after an optional DistributedDataParallel ``module.``.
+_BACKBONE_PREFIXES = ("backbone.", "img_backbone.", "encoders.camera.backbone.", "image_encoder.backbone.")
 
 
 class PretrainedUnavailable(OSError):

@@ -24,9 +24,20 @@ from torchvision.models.resnet import BasicBlock
 from occkit.models.dac import DACBlock
 from occkit.models.image_encoder import conv_bn_relu
 
-__all__ = ["DepthNetConfig", "DepthNet", "camera_parameters", "NUM_CAMERA_PARAMETERS"]
+__all__ = ["DepthNetConfig", "DepthNet", "camera_parameters", "lidar_target", "NUM_CAMERA_PARAMETERS"]
 
 NUM_CAMERA_PARAMETERS = 27
+
+
+def lidar_target(maps: Tensor | None, predicted: Tensor, name: str, model: str, stride: int) -> Tensor:
+    """The batch's LiDAR ``name`` maps ``(B, N, h, w)`` (depth or height, training only), checked against the
+    predicted bins ``(B, N, K, h, w)`` of ``model``, whose image features have ``stride``."""
+    if maps is None:
+        raise ValueError(f"{model}'s {name} loss needs LiDAR {name} maps: set data.depth_downsample = {stride}")
+    if maps.shape[-2:] != predicted.shape[-2:]:
+        raise ValueError(f"{name} maps are {tuple(maps.shape[-2:])} but {model}'s features are "
+                         f"{tuple(predicted.shape[-2:])}: data.depth_downsample must equal the feature stride {stride}")
+    return maps
 
 
 @dataclass(frozen=True)

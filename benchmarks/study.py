@@ -1,0 +1,373 @@
+"""The papers' ablations at tiny scale: every arm trained with one budget on one synthetic world, over seeds.
+
+    python benchmarks/study.py [--data data/study-world] [--steps 500] [--seeds 2] [--max-seeds 3]
+        [--arms NAME ...] [--out docs/results/study] [--runs runs/study] [--commit] [--report]
+
+Each arm is a CPU-sized zoo entry with one mechanism changed (:data:`ARMS`); every arm trains for ``--steps``
+optimizer steps of batch 1 from its zoo recipe, with seeds 0, 1, ... (the seed sets the initial weights, the sample
+order and the augmentation draws), on the training scenes of one world (:data:`WORLD`, written first if absent), and
+is scored on the world's held-out scenes: mIoU and geometry IoU under the camera mask, and RayIoU (temporal models
+streamed scene by scene, as ``occkit eval`` runs them).
+
+Each paper claim is a comparison of two arms (:data:`CLAIMS`). Once every arm has ``--seeds`` seeds, a claim whose
+two arms' mIoU ranges over seeds overlap gets one more seed for both arms, up to ``--max-seeds``.
+
+Resumable: each finished run writes ``<out>/<arm>/seed-<k>.json`` (with ``--commit``, committed to git at once, so
+an interrupted study keeps what it finished); a rerun skips finished runs, and a killed run resumes from the newest
+checkpoint in ``<runs>/<arm>/seed-<k>``. The summary (``<out>/study.json``, ``<out>/study.md`` and
+``<out>/study.png``) is rewritten after every run; ``--report`` only rewrites it. Times are wall-clock and CPU
+seconds of this process and its data workers: run it on an otherwise idle machine.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import resource
+import statistics
+import subprocess
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+
+from occkit import zoo
+from occkit.engine.evaluate import dataset_ray_origins, evaluate_model, evaluation_dataset, load_trained
+from occkit.engine.train import train
+from occkit.experiment import Experiment, replace_train
+from occkit.figure import new_figure, save_figure
+from occkit.models.temporal import TemporalConfig
+from occkit.sim.generate import SimConfig, simulate_dataset
+
+#: 16 scenes of 24 key frames at 400 x 225: the sim holds the last 4 out (val), 12 train (288 frames).
+WORLD = {"scenes": 16, "frames": 24, "image_size": (400, 225), "seed": 7}
+#: The scores of a run, each in [0, 1].
+METRICS = ("miou", "iou", "rayiou")
+
+
+def _model(experiment: Experiment, **changes) -> Experiment:
+    return dataclasses.replace(experiment, model=dataclasses.replace(experiment.model, **changes))
+
+
+def _data(experiment: Experiment, **changes) -> Experiment:
+    return dataclasses.replace(experiment, data=dataclasses.replace(experiment.data, **changes))
+
+
+def _daocc_range(extent: float) -> Callable[[Experiment], Experiment]:
+    """daocc_tiny whose LiDAR, projection, BEV and detection range is +-``extent`` m (0.6 m BEV cells kept)."""
+
+    def change(experiment: Experiment) -> Experiment:
+        m = experiment.model
+        lidar_range = (-extent, -extent, m.lidar.point_cloud_range[2], extent, extent, m.lidar.point_cloud_range[5])
+        cells = round(2 * extent / 0.6)
+        return _model(
+            experiment,
+            view=dataclasses.replace(m.view, point_cloud_range=lidar_range,
+                                     grid_size=(cells, cells, m.view.grid_size[2])),
+            lidar=dataclasses.replace(m.lidar, point_cloud_range=lidar_range),
+            range_extension=dataclasses.replace(m.range_extension, bev_range=(-extent, -extent, extent, extent)),
+            detection=dataclasses.replace(m.detection, point_cloud_range=lidar_range),
+        )  # fmt: skip
+
+    return change
+
+
+def _concat_history(frames: int) -> Callable[[Experiment], Experiment]:
+    """da_occ_tiny with BEVDet4D's concatenation of ``frames`` earlier key frames (as da_occ_1f)."""
+
+    def change(experiment: Experiment) -> Experiment:
+        temporal = TemporalConfig(fusion="concat", history=frames)
+        m = experiment.model
+        context = m.bev.in_channels
+        experiment = _model(experiment, temporal=temporal,
+                            bev=dataclasses.replace(m.bev, in_channels=temporal.out_channels(context)))  # fmt: skip
+        return _data(experiment, history=frames)
+
+    return change
+
+
+@dataclass(frozen=True)
+class Arm:
+    """One arm: a zoo entry and a change to its experiment."""
+
+    entry: str
+    change: Callable[[Experiment], Experiment] | None
+    description: str
+    sampler: str | None = None
+    """The training order, when not the entry's own (``streams``: the temporal control)."""
+
+    def experiment(self) -> Experiment:
+        experiment = zoo.experiment(self.entry)
+        experiment = experiment if self.change is None else self.change(experiment)
+        return experiment if self.sampler is None else replace_train(experiment, sampler=self.sampler)
+
+
+#: Arm name -> arm. Names say what differs from the entry: ``-`` removes a mechanism, ``+`` adds one.
+ARMS: dict[str, Arm] = {
+    # DAOcc: detection assistance, the BEV range extension, and the sensors.
+    "daocc_tiny": Arm("daocc_tiny", None, "camera + LiDAR fusion, detection head, BEV range +-43.2 m"),
+    "daocc_tiny - detection": Arm(
+        "daocc_tiny", lambda e: _data(_model(e, detection=None), boxes=False), "without the auxiliary detection head"
+    ),
+    "daocc_tiny - BVRE": Arm("daocc_tiny", _daocc_range(40.8), "BEV range +-40.8 m, just the Occ3D grid"),
+    "daocc_tiny camera only": Arm(
+        "daocc_tiny", lambda e: _data(_model(e, lidar=None), sweeps=-1), "the camera branch alone (projection)"
+    ),
+    "daocc_tiny LiDAR only": Arm(
+        "daocc_tiny", lambda e: _data(_model(e, image=None), cameras=()), "the LiDAR branch alone"
+    ),
+    # DA-Occ against FlashOcc, and DA-Occ's mechanisms one at a time.
+    "flashocc_tiny": Arm("flashocc_tiny", None, "the baseline: LSS, BEV encoder, channel-to-height"),
+    "da_occ_tiny": Arm("da_occ_tiny", None, "LSS with depth scores + height-score projection + DACs"),
+    "da_occ_tiny - height": Arm(
+        "da_occ_tiny", lambda e: _model(e, height_net=None), "without the height branch (FlashOcc + BEV DACs)"
+    ),
+    "da_occ_tiny - HeightNet DAC": Arm(
+        "da_occ_tiny", lambda e: _model(e, height_net=dataclasses.replace(e.model.height_net, dac_blocks=0)),
+        "HeightNet's DACs replaced by the 3x3 BasicBlocks they replaced",
+    ),
+    "da_occ_tiny - BEV horizontal DAC": Arm(
+        "da_occ_tiny", lambda e: _model(e, bev_horizontal_dac=False), "without D_h on the BEV"
+    ),
+    "da_occ_tiny - BEV vertical DAC": Arm(
+        "da_occ_tiny", lambda e: _model(e, bev_vertical_dac=False), "without D_v on the BEV"
+    ),
+    "da_occ_tiny - height-volume DAC": Arm(
+        "da_occ_tiny", lambda e: _model(e, height_volume_dac=False), "without D_v along z on the height volume"
+    ),
+    # Single frame against temporal.
+    "da_occ_tiny + 1 frame": Arm("da_occ_tiny", _concat_history(1), "one earlier key frame, concatenated (BEVDet4D)"),
+    "da_occ_tiny + recurrent": Arm(
+        "da_occ_tiny_temporal", None, "a recurrent BEV state over every earlier frame, trained on streams"
+    ),
+    "da_occ_tiny (streams)": Arm(
+        "da_occ_tiny", None, "single frame, trained in the recurrent arm's order (the control)", sampler="streams"
+    ),
+}  # fmt: skip
+
+
+@dataclass(frozen=True)
+class Claim:
+    """A paper's claim as a comparison: ``better`` should score above ``worse``."""
+
+    paper: str
+    text: str
+    better: str
+    worse: str
+
+
+CLAIMS: list[Claim] = [
+    Claim("DAOcc", "the auxiliary detection head improves occupancy", "daocc_tiny", "daocc_tiny - detection"),
+    Claim("DAOcc", "the BEV range extension (BVRE) improves occupancy", "daocc_tiny", "daocc_tiny - BVRE"),
+    Claim("survey", "fusion beats camera only", "daocc_tiny", "daocc_tiny camera only"),
+    Claim("survey", "fusion beats LiDAR only", "daocc_tiny", "daocc_tiny LiDAR only"),
+    Claim("DA-Occ", "DA-Occ beats FlashOcc at matched size", "da_occ_tiny", "flashocc_tiny"),
+    Claim("DA-Occ", "the height branch helps", "da_occ_tiny", "da_occ_tiny - height"),
+    Claim("DA-Occ", "HeightNet's DACs help", "da_occ_tiny", "da_occ_tiny - HeightNet DAC"),
+    Claim("DA-Occ", "the horizontal BEV DAC helps", "da_occ_tiny", "da_occ_tiny - BEV horizontal DAC"),
+    Claim("DA-Occ", "the vertical BEV DAC helps", "da_occ_tiny", "da_occ_tiny - BEV vertical DAC"),
+    Claim("DA-Occ", "the height volume's DAC helps", "da_occ_tiny", "da_occ_tiny - height-volume DAC"),
+    Claim("DA-Occ", "one history frame helps", "da_occ_tiny + 1 frame", "da_occ_tiny"),
+    Claim("DA-Occ", "a long history helps", "da_occ_tiny + recurrent", "da_occ_tiny"),
+    Claim("DA-Occ", "a long history helps, order held equal", "da_occ_tiny + recurrent", "da_occ_tiny (streams)"),
+]
+
+
+def _slug(name: str) -> str:
+    return "".join(c if c.isalnum() or c == "_" else "-" for c in name.replace(" ", "_")).strip("-")
+
+
+def _cpu_seconds() -> float:
+    """CPU seconds of this process and its finished children (the data loader's workers)."""
+    own, children = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+    return own.ru_utime + own.ru_stime + children.ru_utime + children.ru_stime
+
+
+def run_arm(name: str, seed: int, args: argparse.Namespace) -> dict:
+    """Train and score one arm at one seed; the cached result when it already ran."""
+    result_file = args.out / _slug(name) / f"seed-{seed}.json"
+    if result_file.is_file():
+        return json.loads(result_file.read_text())
+    arm = ARMS[name]
+    experiment = _data(arm.experiment(), root=str(args.data))
+    experiment = replace_train(experiment, max_steps=args.steps, epochs=10_000, val_every=-1, checkpoint_every=100,
+                               seed=seed)  # fmt: skip
+    folder = args.runs / _slug(name) / f"seed-{seed}"
+    print(f"[study] {name}, seed {seed}: training {args.steps} steps into {folder}", flush=True)
+    wall, cpu = time.perf_counter(), _cpu_seconds()
+    run = train(experiment, folder, resume="auto", progress=args.progress)
+    train_wall, train_cpu = time.perf_counter() - wall, _cpu_seconds() - cpu
+    model, experiment = load_trained(sorted(folder.glob("step-*.pt"))[-1])
+    dataset = evaluation_dataset(experiment, args.data, "val")
+    torch.set_flush_denormal(True)
+    wall, cpu = time.perf_counter(), _cpu_seconds()
+    scores = evaluate_model(model, dataset, batch_size=1, workers=1, ray_origins=dataset_ray_origins(dataset))
+    result = {
+        "arm": name, "entry": arm.entry, "description": arm.description, "seed": seed, "steps": run.steps,
+        **{key: scores[key] for key in METRICS}, "per_class_iou": scores["per_class_iou"], "frames": scores["frames"],
+        "train_seconds": train_wall, "train_cpu_seconds": train_cpu, "eval_seconds": time.perf_counter() - wall,
+        "eval_cpu_seconds": _cpu_seconds() - cpu, "params": sum(p.numel() for p in model.parameters()),
+        "threads": torch.get_num_threads(), "world": {**WORLD, "data": str(args.data)},
+    }  # fmt: skip
+    result_file.parent.mkdir(parents=True, exist_ok=True)
+    result_file.write_text(json.dumps(result, indent=2) + "\n")
+    print(f"[study] {name}, seed {seed}: mIoU {100 * result['miou']:.2f}, IoU {100 * result['iou']:.2f}, "
+          f"RayIoU {100 * result['rayiou']:.2f} ({train_wall / 60:.1f} min training)", flush=True)
+    if args.commit:
+        subprocess.run(["git", "add", str(result_file)], check=True)
+        subprocess.run(["git", "commit", "-q", "-m", f"study: {name}, seed {seed}", "--", str(result_file)],
+                       check=True)  # fmt: skip
+    return result
+
+
+def _finished(out: Path) -> dict[str, list[dict]]:
+    """Arm -> its finished runs, by seed."""
+    runs = {}
+    for name in ARMS:
+        files = sorted((out / _slug(name)).glob("seed-*.json"), key=lambda p: int(p.stem.split("-")[1]))
+        runs[name] = [json.loads(f.read_text()) for f in files]
+    return runs
+
+
+def summarise(runs: list[dict]) -> dict:
+    """Mean, standard deviation (0 for one run), minimum and maximum of each metric over an arm's seeds."""
+    summary = {"seeds": [r["seed"] for r in runs],
+               "train_minutes": statistics.mean(r["train_seconds"] for r in runs) / 60}
+    for key in METRICS:
+        values = [r[key] for r in runs]
+        summary[key] = {"mean": statistics.mean(values), "std": statistics.stdev(values) if len(values) > 1 else 0.0,
+                        "min": min(values), "max": max(values)}  # fmt: skip
+    return summary
+
+
+def _overlap(a: dict, b: dict) -> bool:
+    """Whether two arms' mIoU ranges over seeds overlap."""
+    return a["miou"]["min"] <= b["miou"]["max"] and b["miou"]["min"] <= a["miou"]["max"]
+
+
+def verdict(claim: Claim, summaries: dict[str, dict]) -> dict:
+    """A claim's measured difference in mIoU (better - worse, points) and whether the seeds settle it."""
+    better, worse = summaries.get(claim.better), summaries.get(claim.worse)
+    if not better or not worse:
+        return {"status": "not run"}
+    difference = 100 * (better["miou"]["mean"] - worse["miou"]["mean"])
+    status = "within the seed spread" if _overlap(better, worse) else "holds" if difference > 0 else "reversed"
+    return {"status": status, "difference": difference, "iou_difference": 100 * (better["iou"]["mean"]
+                                                                                 - worse["iou"]["mean"])}
+
+
+def _needs_more_seeds(runs: dict[str, list[dict]], arms: list[str], seeds: int, max_seeds: int) -> dict[str, int]:
+    """Arm -> seeds it should have: ``seeds``, one more for both arms of every claim whose ranges overlap."""
+    wanted = dict.fromkeys(arms, seeds)
+    if any(len(runs[name]) < seeds for name in arms):
+        return wanted
+    summaries = {name: summarise(runs[name]) for name in arms}
+    for claim in CLAIMS:
+        if claim.better in summaries and claim.worse in summaries and _overlap(summaries[claim.better],
+                                                                               summaries[claim.worse]):
+            for name in (claim.better, claim.worse):
+                wanted[name] = max(wanted[name], min(max_seeds, len(runs[name]) + 1))
+    return wanted
+
+
+def _cell(summary: dict, key: str) -> str:
+    value = summary[key]
+    return f"{100 * value['mean']:.2f} ± {100 * value['std']:.2f}"
+
+
+def write_report(out: Path, args: argparse.Namespace) -> dict:
+    """``study.json``, ``study.md`` and ``study.png`` from every finished run in ``out``."""
+    runs = _finished(out)
+    summaries = {name: summarise(r) for name, r in runs.items() if r}
+    verdicts = [{**dataclasses.asdict(claim), **verdict(claim, summaries)} for claim in CLAIMS]
+    seconds = [(r["train_seconds"] + r["eval_seconds"], r["train_cpu_seconds"] + r["eval_cpu_seconds"])
+               for arm_runs in runs.values() for r in arm_runs]  # fmt: skip
+    report = {"world": {**WORLD, "data": str(args.data)}, "steps": args.steps, "arms": summaries,
+              "claims": verdicts, "runs": runs, "wall_hours": sum(s[0] for s in seconds) / 3600,
+              "cpu_hours": sum(s[1] for s in seconds) / 3600}  # fmt: skip
+    (out / "study.json").write_text(json.dumps(report, indent=2) + "\n")
+    lines = [
+        f"Every arm: {args.steps} steps of batch 1 on the training scenes of `{args.data}`, scored on its held-out "
+        "scenes; mean ± standard deviation over seeds (%).",
+        "",
+        "| arm | what differs | seeds | mIoU | IoU | RayIoU | train min |",
+        "| --- | --- | --- | --- | --- | --- | --- |",
+    ]
+    for name, summary in summaries.items():
+        lines.append(f"| `{name}` | {ARMS[name].description} | {len(summary['seeds'])} | {_cell(summary, 'miou')} | "
+                     f"{_cell(summary, 'iou')} | {_cell(summary, 'rayiou')} | {summary['train_minutes']:.1f} |")
+    lines += ["", "| paper | claim | better | worse | mIoU difference | IoU difference | verdict |",
+              "| --- | --- | --- | --- | --- | --- | --- |"]  # fmt: skip
+    for v in verdicts:
+        diff = "-" if "difference" not in v else f"{v['difference']:+.2f}"
+        iou = "-" if "iou_difference" not in v else f"{v['iou_difference']:+.2f}"
+        lines.append(f"| {v['paper']} | {v['text']} | `{v['better']}` | `{v['worse']}` | {diff} | {iou} | "
+                     f"{v['status']} |")
+    lines += ["", f"{len(seconds)} runs, {report['wall_hours']:.1f} h wall-clock, {report['cpu_hours']:.1f} CPU hours."]
+    (out / "study.md").write_text("\n".join(lines) + "\n")
+    _plot(summaries, out / "study.png")
+    return report
+
+
+def _plot(summaries: dict[str, dict], path: Path) -> None:
+    """mIoU and IoU per arm, mean with the seeds' minimum-maximum range as the error bar."""
+    if not summaries:
+        return
+    names = list(summaries)
+    fig = new_figure(11.0, 0.32 * len(names) + 1.4)
+    axes = fig.subplots(1, 2, sharey=True)
+    for axis, key, title in ((axes[0], "miou", "mIoU (%)"), (axes[1], "iou", "IoU (%)")):
+        means = [100 * summaries[n][key]["mean"] for n in names]
+        low = [m - 100 * summaries[n][key]["min"] for m, n in zip(means, names, strict=True)]
+        high = [100 * summaries[n][key]["max"] - m for m, n in zip(means, names, strict=True)]
+        colours = [f"C{['daocc', 'flashocc', 'da_occ'].index(ARMS[n].entry.split('_tiny')[0])}" for n in names]
+        axis.barh(range(len(names)), means, xerr=[low, high], color=colours, capsize=2)
+        axis.set_title(title, fontsize=10)
+        axis.grid(axis="x", alpha=0.3)
+    axes[0].set_yticks(range(len(names)), names, fontsize=8)
+    axes[0].invert_yaxis()
+    fig.suptitle("tiny-scale ablations, held-out scenes (bars: mean; whiskers: range over seeds)", fontsize=10)
+    fig.tight_layout()
+    save_figure(fig, path, dpi=110)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--data", type=Path, default=Path("data/study-world"))
+    parser.add_argument("--steps", type=int, default=500)
+    parser.add_argument("--seeds", type=int, default=2, help="seeds per arm (default 2)")
+    parser.add_argument("--max-seeds", type=int, default=3, help="seeds for the arms of an unsettled claim")
+    parser.add_argument("--arms", nargs="+", choices=list(ARMS), default=list(ARMS), metavar="ARM")
+    parser.add_argument("--out", type=Path, default=Path("docs/results/study"))
+    parser.add_argument("--runs", type=Path, default=Path("runs/study"))
+    parser.add_argument("--commit", action="store_true", help="commit each finished run's result file to git")
+    parser.add_argument("--report", action="store_true", help="only rewrite the summary from the finished runs")
+    parser.add_argument("--progress", action="store_true", help="show each run's training progress bar")
+    args = parser.parse_args()
+    args.out.mkdir(parents=True, exist_ok=True)
+    if args.report:
+        write_report(args.out, args)
+        return
+    if not args.data.exists():
+        print(f"[study] simulating {WORLD['scenes']} scenes x {WORLD['frames']} key frames into {args.data}",
+              flush=True)
+        simulate_dataset(SimConfig(**WORLD), args.data, workers=2)
+    while True:
+        runs = _finished(args.out)
+        wanted = _needs_more_seeds(runs, args.arms, args.seeds, args.max_seeds)
+        todo = [(name, seed) for seed in range(args.max_seeds) for name in args.arms
+                if seed < wanted[name] and seed >= len(runs[name])]  # fmt: skip
+        if not todo:
+            break
+        run_arm(*todo[0], args)
+        write_report(args.out, args)
+    report = write_report(args.out, args)
+    print((args.out / "study.md").read_text())
+    print(f"[study] done: {report['cpu_hours']:.1f} CPU hours")
+
+
+if __name__ == "__main__":
+    main()
