@@ -546,7 +546,7 @@ def _add_demo(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--data", type=Path, default=Path("data/demo"),
                         help="synthetic dataset, written first if absent (default data/demo)")
     parser.add_argument("--steps", type=integer(1), default=None,
-                        help="optimizer steps per model (default: the demo's, 700 and 250)")
+                        help="optimizer steps per model (default: each model's own, occkit.demo.DEMO_MODELS)")
 
 
 def _run_demo(args: argparse.Namespace) -> int:

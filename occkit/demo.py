@@ -1,8 +1,10 @@
 """``occkit demo``: the whole system on a laptop CPU, end to end, in under 20 minutes.
 
 1. Write a small synthetic world (train scenes and held-out validation scenes) if the data folder is absent.
-2. Train ``daocc_tiny`` (camera + LiDAR) and ``flashocc_tiny`` (camera only) on the training scenes.
-3. Score both on the held-out scenes (Occ3D mIoU and geometry IoU under the camera mask, RayIoU), beside the
+2. Train one model of each family on the training scenes: ``daocc_tiny`` (camera + LiDAR fusion), ``da_occ_tiny``
+   (camera only, DA-Occ's height-score projection and direction-aware convolutions; LiDAR heights supervise its
+   height branch in training) and ``flashocc_tiny`` (camera only, the baseline).
+3. Score each on the held-out scenes (Occ3D mIoU and geometry IoU under the camera mask, RayIoU), beside the
    trivial baseline that predicts the most frequent class everywhere.
 4. Render predictions next to the ground truth and write ``report.md`` and ``metrics.json``.
 """
@@ -31,8 +33,8 @@ from occkit.viz.bev import bev_image
 
 __all__ = ["run_demo", "DEMO_MODELS", "DEMO_WORLD"]
 
-#: Zoo entries the demo trains, with their optimizer steps (about 14 and 2 minutes on 2 CPU cores).
-DEMO_MODELS: dict[str, int] = {"daocc_tiny": 700, "flashocc_tiny": 250}
+#: Zoo entries the demo trains, one per family, with their optimizer steps (docs/training.md gives the minutes).
+DEMO_MODELS: dict[str, int] = {"daocc_tiny": 700, "da_occ_tiny": 250, "flashocc_tiny": 250}
 #: The label space of the demo's world and models: Occ3D (the world writes its labels and visibility masks).
 DEMO_SPACE = OCC3D_SPACE
 #: The synthetic world of the demo: 10 scenes of 24 key frames at 400 x 225 (the last 2-3 scenes held out).
@@ -103,14 +105,15 @@ def _report(out: Path, results: dict, baseline: dict, seconds: float, render: Pa
         f"over the {len(taxonomy.semantic_ids)} semantic classes and geometry IoU (occupied vs free), both under the "
         "camera visibility mask; RayIoU without mask.",
         "",
-        "| model | inputs | steps | train time | mIoU | IoU | RayIoU |",
-        "| --- | --- | --- | --- | --- | --- | --- |",
+        "| model | inputs | also supervised in training by | steps | train time | mIoU | IoU | RayIoU |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- |",
     ]
     for name, result in results.items():
         inputs = " + ".join(zoo.model_config(name)[1].sensors)
-        lines.append(f"| `{name}` | {inputs} | {result['steps']} | {result['train_seconds'] / 60:.1f} min | "
+        lines.append(f"| `{name}` | {inputs} | {_training_signals(name)} | {result['steps']} | "
+                     f"{result['train_seconds'] / 60:.1f} min | "
                      f"{100 * result['miou']:.1f} | {100 * result['iou']:.1f} | {100 * result['rayiou']:.1f} |")
-    lines.append(f"| most frequent class (free) | none | - | - | {100 * baseline['miou']:.1f} | "
+    lines.append(f"| most frequent class (free) | none | - | - | - | {100 * baseline['miou']:.1f} | "
                  f"{100 * baseline['iou']:.1f} | - |")
     lines += ["", "Per-class IoU (%):", "", "| class | " + " | ".join(f"`{n}`" for n in results) + " |",
               "| --- |" + " --- |" * len(results)]  # fmt: skip
@@ -125,6 +128,15 @@ def _report(out: Path, results: dict, baseline: dict, seconds: float, render: Pa
     path = out / "report.md"
     path.write_text("\n".join(lines) + "\n")
     return path
+
+
+def _training_signals(name: str) -> str:
+    """What supervises a zoo entry in training beside the occupancy labels (none of it is an input at inference)."""
+    data = zoo.experiment(name).data
+    signals = ["3D boxes (detection head)"] if data.boxes else []
+    if data.depth_downsample:
+        signals.append("LiDAR depth and height maps")
+    return ", ".join(signals) or "-"
 
 
 def _training_time(folder: Path, seconds: float) -> float:
@@ -159,16 +171,21 @@ def _train_score_report(out: Path, data: Path, models: dict[str, int], started: 
             raise ValueError(f"demo model {name} predicts {experiment.data.label_space} labels; the demo's world "
                              f"holds {DEMO_SPACE.name} labels")  # fmt: skip
         experiment = dataclasses.replace(experiment, data=dataclasses.replace(experiment.data, root=str(data)))
-        experiment = replace_train(experiment, max_steps=steps, epochs=1000, val_every=-1, checkpoint_every=100)
+        # On the CPU every core runs the model's threads: a loader process would only take turns with them (a
+        # daocc_tiny step took 1.72 s with one loader process and 1.60 s reading in the main process, 2 cores).
+        workers = experiment.train.workers if torch.cuda.is_available() else 0
+        experiment = replace_train(experiment, max_steps=steps, epochs=1000, val_every=-1, checkpoint_every=100,
+                                   workers=workers)  # fmt: skip
         _say(f"training {name} for {steps} steps ({zoo.description(name)})")
         # A rerun with other --steps continues the earlier run: only the step count may differ.
-        run = train(experiment, out / name, resume="auto", allow_changes=("train.max_steps",))
+        run = train(experiment, out / name, resume="auto", allow_changes=("train.max_steps", "train.workers"))
         train_seconds = _training_time(out / name, run.seconds)
         model, experiment = load_trained(sorted((out / name).glob("step-*.pt"))[-1])
         dataset = evaluation_dataset(experiment, data, "val")
         torch.set_flush_denormal(True)  # as during training: subnormals are an order of magnitude slower on CPUs
         _say(f"scoring {name} on {len(dataset)} held-out frames")
-        scores = evaluate_model(model, dataset, batch_size=1, workers=1, ray_origins=dataset_ray_origins(dataset))
+        scores = evaluate_model(model, dataset, batch_size=1, workers=workers,
+                                ray_origins=dataset_ray_origins(dataset))
         results[name] = {**scores, "steps": run.steps, "train_seconds": train_seconds}
         trained[name], datasets[name] = model, dataset
         _say(f"{name}: mIoU {100 * scores['miou']:.1f}, IoU {100 * scores['iou']:.1f}, "

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import pytest
@@ -103,6 +104,21 @@ def test_forward_shapes_and_init():
         assert torch.all(task_head.branches["reg"][-1].bias == 0)
     with pytest.raises(ValueError, match="40"):
         head(torch.randn(1, 32, 36, 40))
+
+
+def test_the_prior_initialisation_starts_every_cell_near_the_prior():
+    torch.manual_seed(0)
+    bev = torch.randn(1, 32, 40, 40)
+    spreads = {}
+    for std in (None, 0.01):
+        head = CenterHead(dataclasses.replace(TINY, heatmap_init_std=std)).train()
+        with torch.no_grad():
+            probs = torch.cat([out["heatmap"].sigmoid().flatten() for out in head(bev)])
+        spreads[std] = (probs.min().item(), probs.max().item())
+    prior = 1 / (1 + math.exp(2.19))
+    # mmdet3d's Kaiming weights: some cells start almost certain, others almost impossible.
+    assert spreads[None][1] > 0.9 and spreads[None][0] < 0.01
+    assert prior / 2 < spreads[0.01][0] <= spreads[0.01][1] < 2 * prior
 
 
 # ----------------------------------------------------------------------------------------------- targets

@@ -9,7 +9,12 @@ import torch
 import torch.nn.functional as F
 
 from occkit.losses import (
+    CountedVoxels,
     class_weights_from_frequencies,
+    counted_affinity_geometric,
+    counted_affinity_semantic,
+    counted_cross_entropy,
+    counted_lovasz_softmax,
     depth_bce,
     drop_free_cross_entropy,
     focal_loss,
@@ -238,6 +243,37 @@ def test_occupancy_head_adds_a_weighted_lovasz_term_over_the_cross_entropy_voxel
     torch.testing.assert_close(terms["lovasz"], 0.5 * lovasz_softmax(logits.softmax(dim=1), labels, mask))
     unmasked = OccupancyHead(OccupancyHeadConfig(use_mask=False, lovasz_weight=1.0)).loss(logits, labels, None)
     torch.testing.assert_close(unmasked["lovasz"], lovasz_softmax(logits.softmax(dim=1), labels))
+
+
+def test_terms_of_one_gather_equal_the_terms_gathered_each_on_its_own():
+    generator = torch.Generator().manual_seed(6)
+    grid = torch.randn(2, 5, 3, 4, 18, generator=generator, dtype=torch.float64)  # classes innermost, as the heads
+    labels = torch.randint(0, 18, (2, 5, 3, 4), generator=generator)
+    labels[0, 0] = 255
+    mask = torch.rand(2, 5, 3, 4, generator=generator) > 0.3
+    weights = torch.rand(18, generator=generator, dtype=torch.float64) + 0.5
+
+    def separate(logits):
+        return [masked_cross_entropy(logits, labels, mask, weights), masked_cross_entropy(logits, labels, mask),
+                lovasz_softmax(logits, labels, mask, from_logits=True),
+                scene_class_affinity_semantic(logits, labels, mask),
+                scene_class_affinity_geometric(logits, labels, 17, mask)]  # fmt: skip
+
+    def shared(logits):
+        voxels = CountedVoxels(logits, labels, mask)
+        return [counted_cross_entropy(voxels, weights), counted_cross_entropy(voxels), counted_lovasz_softmax(voxels),
+                counted_affinity_semantic(voxels), counted_affinity_geometric(voxels, 17)]  # fmt: skip
+
+    gradients = []
+    for terms_of in (separate, shared):
+        leaf = grid.clone().requires_grad_(True)
+        terms = terms_of(leaf.movedim(-1, 1))
+        sum(terms).backward()
+        gradients.append((torch.stack(terms).detach(), leaf.grad))
+    torch.testing.assert_close(gradients[0][0], gradients[1][0], rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(gradients[0][1], gradients[1][1], rtol=1e-12, atol=1e-12)
+    with pytest.raises(ValueError, match="logits"):
+        counted_cross_entropy(CountedVoxels(grid.movedim(-1, 1).softmax(1), labels, mask, from_logits=False))
 
 
 # --- scene-class affinity (MonoScene) --------------------------------------------------------------------------------

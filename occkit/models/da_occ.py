@@ -61,10 +61,10 @@ from occkit.experiment import CPU_TRAIN, Experiment, TrainConfig, cpu_data, repr
 from occkit.geometry.grid import OCC3D_GRID, VoxelGrid
 from occkit.label_space import OCC3D_SPACE
 from occkit.losses import (
+    counted_affinity_geometric,
+    counted_affinity_semantic,
     depth_bce,
     height_bce,
-    scene_class_affinity_geometric,
-    scene_class_affinity_semantic,
 )
 from occkit.models.base import FIXED_CALIBRATION_RETIRED, Architecture, OccupancyModel, camera_images
 from occkit.models.bev_encoder import BevEncoder, BevEncoderConfig
@@ -346,8 +346,7 @@ class DirectionAwareOcc(OccupancyModel):
         if batch.voxel_semantics is None:
             raise ValueError("the occupancy loss needs batch.voxel_semantics")
         w = self.cfg.loss_weights
-        # Without the visibility mask the affinities, like the head's drop-free CE, count every voxel.
-        labels, mask = batch.voxel_semantics, batch.mask_camera if self.cfg.occupancy.use_mask else None
+        labels = batch.voxel_semantics
         losses: dict[str, Tensor] = {}
         if w.depth:
             maps = lidar_target(batch.depth_maps, output.depth, "depth", "DA-Occ", self.cfg.feature_stride)
@@ -355,13 +354,15 @@ class DirectionAwareOcc(OccupancyModel):
         if self.height_net is not None and w.height:
             maps = lidar_target(batch.height_maps, output.height, "height", "DA-Occ", self.cfg.feature_stride)
             losses["height"] = w.height * height_bce(output.height, maps, self.cfg.height_range)
+        # One gather of the counted voxels serves the head's terms and the affinities (without the visibility mask,
+        # the affinities, like the head's drop-free CE, count every voxel).
+        voxels = self.occupancy_head.counted_voxels(output.occupancy, labels, batch.mask_camera)
         # The head's own loss: its class balance and optional Lovasz term apply as in the other models.
-        losses.update({name: (w.occupancy if name == "occupancy" else 1.0) * term
-                       for name, term in self.occupancy_head.loss(output.occupancy, labels, mask).items()})
-        losses["semantic_affinity"] = w.semantic_affinity * scene_class_affinity_semantic(output.occupancy, labels,
-                                                                                          mask)
-        losses["geometric_affinity"] = w.geometric_affinity * scene_class_affinity_geometric(
-            output.occupancy, labels, self.cfg.occupancy.free_index, mask
+        losses.update({name: (w.occupancy if name == "occupancy" else 1.0) * term for name, term
+                       in self.occupancy_head.loss(output.occupancy, labels, batch.mask_camera, voxels).items()})
+        losses["semantic_affinity"] = w.semantic_affinity * counted_affinity_semantic(voxels)
+        losses["geometric_affinity"] = w.geometric_affinity * counted_affinity_geometric(
+            voxels, self.cfg.occupancy.free_index
         )
         return losses
 

@@ -377,8 +377,9 @@ def daocc_lidar() -> Experiment:
 
 def daocc_tiny() -> Experiment:
     """DAOcc's architecture scaled down for CPUs: ResNet-18 (one block per stage), +-43.2 m at 0.15 m voxels with a
-    stride-4 sparse encoder (a 144 x 144 BEV of 0.6 m cells, the paper's cell size), narrow channels, and a Lovasz
-    term beside the cross-entropy; the Occ3D output grid is unchanged."""
+    stride-4 sparse encoder (a 144 x 144 BEV of 0.6 m cells, the paper's cell size), narrow channels, a Lovasz
+    term beside the cross-entropy, and the detection heatmap's prior initialisation; the Occ3D output grid is
+    unchanged."""
     extent = 43.2
     lidar_range = (-extent, -extent, -5.0, extent, extent, 3.0)
     model = DAOccConfig(
@@ -400,9 +401,12 @@ def daocc_tiny() -> Experiment:
         range_extension=RangeExtensionConfig(bev_range=(-extent, -extent, extent, extent), in_channels=64,
                                              out_channels=32),
         occupancy=OccupancyHeadConfig(in_channels=32, hidden_channels=32, class_balance=True, lovasz_weight=1.0),
+        # RetinaNet's prior initialisation of the heatmap output: with mmdet3d's Kaiming weights the first steps'
+        # focal loss is in the thousands, and in a schedule of a few hundred steps Adam's memory of those gradients
+        # keeps the shared BEV from learning occupancy (measured in docs/training.md).
         detection=CenterHeadConfig(
             in_channels=64, share_conv_channels=16, head_conv_channels=8, point_cloud_range=lidar_range,
-            voxel_size=(0.15, 0.15), out_size_factor=4,
+            voxel_size=(0.15, 0.15), out_size_factor=4, heatmap_init_std=0.01,
         ),
     )  # fmt: skip
     return Experiment("daocc", model, cpu_data(_data()), CPU_TRAIN)

@@ -74,6 +74,12 @@ class CenterHeadConfig:
     """Kernel size of every conv in the separate heads (padding kernel // 2)."""
     init_bias: float = -2.19
     """Initial bias of the heatmap output conv (sigmoid(-2.19) ~ 0.1)."""
+    heatmap_init_std: float | None = None
+    """None: the heatmap output conv is Kaiming-initialised like every conv (mmdet3d's SeparateHead), which gives
+    its logits a spread of several units, so that at the first steps some cells score near 1 and the focal loss is
+    in the thousands. A value: normal(0, std) weights instead (RetinaNet's prior initialisation, e.g. 0.01), so
+    that every cell starts near ``sigmoid(init_bias)``; a short schedule needs it, because Adam's second moments
+    remember those first gradients for about a thousand steps and shrink every later update of the shared BEV."""
     point_cloud_range: tuple[float, float, float, float, float, float] = (-54.0, -54.0, -5.0, 54.0, 54.0, 3.0)
     """x_min, y_min, z_min, x_max, y_max, z_max (m) covered by the BEV; cell (0, 0) starts at (x_min, y_min)."""
     voxel_size: tuple[float, float] = (0.075, 0.075)
@@ -234,7 +240,8 @@ class CenterHead(nn.Module):
         self.reset_parameters()
 
     def reset_parameters(self) -> None:
-        """Kaiming-normal (fan_out, ReLU) convs with zero bias, unit BN, heatmap output bias ``init_bias``."""
+        """Kaiming-normal (fan_out, ReLU) convs with zero bias, unit BN, heatmap output bias ``init_bias`` (and
+        normal(0, ``heatmap_init_std``) weights, when set)."""
         for module in self.modules():
             if isinstance(module, nn.Conv2d):
                 nn.init.kaiming_normal_(module.weight, mode="fan_out", nonlinearity="relu")
@@ -245,6 +252,8 @@ class CenterHead(nn.Module):
                 nn.init.zeros_(module.bias)
         for head in self.task_heads:
             nn.init.constant_(head.branches["heatmap"][-1].bias, self.cfg.init_bias)
+            if self.cfg.heatmap_init_std is not None:
+                nn.init.normal_(head.branches["heatmap"][-1].weight, std=self.cfg.heatmap_init_std)
 
     # ------------------------------------------------------------------------------------------- forward
     def forward(self, bev: Tensor) -> list[dict[str, Tensor]]:

@@ -15,10 +15,11 @@ from torch import Tensor, nn
 
 from occkit.classes import OCC3D
 from occkit.losses import (
+    CountedVoxels,
     class_weights_from_frequencies,
+    counted_cross_entropy,
+    counted_lovasz_softmax,
     drop_free_cross_entropy,
-    lovasz_softmax,
-    masked_cross_entropy,
 )
 from occkit.types import OccPrediction
 
@@ -87,17 +88,27 @@ class OccupancyHead(nn.Module):
         logits = self.predictor(columns).view(batch, x, y, self.cfg.height, self.cfg.num_classes)  # (B, X, Y, Z, K)
         return logits.permute(0, 4, 1, 2, 3)  # (B, K, X, Y, Z)
 
-    def loss(self, logits: Tensor, labels: Tensor, mask_camera: Tensor | None) -> dict[str, Tensor]:
+    def loss(
+        self, logits: Tensor, labels: Tensor, mask_camera: Tensor | None, voxels: CountedVoxels | None = None
+    ) -> dict[str, Tensor]:
         """Loss terms of ``logits (B, K, X, Y, Z)`` against ``labels (B, X, Y, Z)``: ``occupancy`` (cross-entropy)
-        and, with ``lovasz_weight``, ``lovasz`` (already weighted)."""
-        mask = None
+        and, with ``lovasz_weight``, ``lovasz`` (already weighted).
+
+        ``voxels``: the counted voxels of these logits (:meth:`counted_voxels`), when the caller gathered them for
+        terms of its own; gathered here otherwise.
+        """
+        if voxels is None and (self.cfg.use_mask or self.cfg.lovasz_weight > 0):
+            voxels = self.counted_voxels(logits, labels, mask_camera)
         if self.cfg.use_mask:
-            if mask_camera is None:
-                raise ValueError("the occupancy loss uses mask_camera (use_mask=True) but the batch has none")
-            mask = mask_camera.bool()
-            losses = {"occupancy": masked_cross_entropy(logits, labels, mask_camera, self.class_weights)}
+            losses = {"occupancy": counted_cross_entropy(voxels, self.class_weights)}
         else:
             losses = {"occupancy": drop_free_cross_entropy(logits, labels, self.cfg.free_index, self.cfg.keep_free)}
         if self.cfg.lovasz_weight > 0:
-            losses["lovasz"] = self.cfg.lovasz_weight * lovasz_softmax(logits, labels, mask, from_logits=True)
+            losses["lovasz"] = self.cfg.lovasz_weight * counted_lovasz_softmax(voxels)
         return losses
+
+    def counted_voxels(self, logits: Tensor, labels: Tensor, mask_camera: Tensor | None) -> CountedVoxels:
+        """The voxels this head's loss counts: the camera-visible ones with ``use_mask``, else every voxel."""
+        if self.cfg.use_mask and mask_camera is None:
+            raise ValueError("the occupancy loss uses mask_camera (use_mask=True) but the batch has none")
+        return CountedVoxels(logits, labels, mask_camera.bool() if self.cfg.use_mask else None)
