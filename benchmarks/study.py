@@ -7,16 +7,18 @@ Each arm is a CPU-sized zoo entry with one mechanism changed (:data:`ARMS`); eve
 optimizer steps of batch 1 from its zoo recipe, with seeds 0, 1, ... (the seed sets the initial weights, the sample
 order and the augmentation draws), on the training scenes of one world (:data:`WORLD`, written first if absent), and
 is scored on the world's held-out scenes: mIoU and geometry IoU under the camera mask, and RayIoU (temporal models
-streamed scene by scene, as ``occkit eval`` runs them).
+streamed scene by scene, as ``occkit eval`` runs them). Groups of arms may run with different budgets and on
+different machines (``--arms`` picks a group; each run records its steps and device), but the two arms of a claim
+are compared only when their budgets are equal.
 
 Each paper claim is a comparison of two arms (:data:`CLAIMS`). Once every arm has ``--seeds`` seeds, a claim whose
 two arms' mIoU ranges over seeds overlap gets one more seed for both arms, up to ``--max-seeds``.
 
 Resumable: each finished run writes ``<out>/<arm>/seed-<k>.json`` (with ``--commit``, committed to git at once, so
-an interrupted study keeps what it finished); a rerun skips finished runs, and a killed run resumes from the newest
-checkpoint in ``<runs>/<arm>/seed-<k>``. The summary (``<out>/study.json``, ``<out>/study.md`` and
-``<out>/study.png``) is rewritten after every run; ``--report`` only rewrites it. Times are wall-clock and CPU
-seconds of this process and its data workers: run it on an otherwise idle machine.
+an interrupted study keeps what it finished); a rerun skips finished runs, whatever their budget, and a killed run
+resumes from the newest checkpoint in ``<runs>/<arm>/seed-<k>``. The summary (``<out>/study.json``, ``<out>/study.md``
+and ``<out>/study.png``) is rewritten after every run; ``--report`` only rewrites it. Times are wall-clock and CPU
+seconds of this process and its data workers, per device: run it on an otherwise idle machine.
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import os
 import resource
 import statistics
 import subprocess
@@ -186,6 +189,13 @@ def _cpu_seconds() -> float:
     return own.ru_utime + own.ru_stime + children.ru_utime + children.ru_stime
 
 
+def _device_name() -> str:
+    """What trained the run: the GPU's name, or the CPU's core count."""
+    if torch.cuda.is_available():
+        return torch.cuda.get_device_name()
+    return f"CPU ({os.cpu_count()} cores)"
+
+
 def run_arm(name: str, seed: int, args: argparse.Namespace) -> dict:
     """Train and score one arm at one seed; the cached result when it already ran."""
     result_file = args.out / _slug(name) / f"seed-{seed}.json"
@@ -210,7 +220,7 @@ def run_arm(name: str, seed: int, args: argparse.Namespace) -> dict:
         **{key: scores[key] for key in METRICS}, "per_class_iou": scores["per_class_iou"], "frames": scores["frames"],
         "train_seconds": train_wall, "train_cpu_seconds": train_cpu, "eval_seconds": time.perf_counter() - wall,
         "eval_cpu_seconds": _cpu_seconds() - cpu, "params": sum(p.numel() for p in model.parameters()),
-        "threads": torch.get_num_threads(), "world": {**WORLD, "data": str(args.data)},
+        "threads": torch.get_num_threads(), "device": _device_name(), "world": {**WORLD, "data": str(args.data)},
     }  # fmt: skip
     result_file.parent.mkdir(parents=True, exist_ok=True)
     result_file.write_text(json.dumps(result, indent=2) + "\n")
@@ -234,7 +244,8 @@ def _finished(out: Path) -> dict[str, list[dict]]:
 
 def summarise(runs: list[dict]) -> dict:
     """Mean, standard deviation (0 for one run), minimum and maximum of each metric over an arm's seeds."""
-    summary = {"seeds": [r["seed"] for r in runs],
+    summary = {"seeds": [r["seed"] for r in runs], "steps": sorted({r["steps"] for r in runs}),
+               "devices": sorted({r.get("device", "CPU") for r in runs}),
                "train_minutes": statistics.mean(r["train_seconds"] for r in runs) / 60}
     for key in METRICS:
         values = [r[key] for r in runs]
@@ -253,6 +264,8 @@ def verdict(claim: Claim, summaries: dict[str, dict]) -> dict:
     better, worse = summaries.get(claim.better), summaries.get(claim.worse)
     if not better or not worse:
         return {"status": "not run"}
+    if better["steps"] != worse["steps"]:
+        return {"status": f"budgets differ ({better['steps']} against {worse['steps']} steps)"}
     difference = 100 * (better["miou"]["mean"] - worse["miou"]["mean"])
     status = "within the seed spread" if _overlap(better, worse) else "holds" if difference > 0 else "reversed"
     return {"status": status, "difference": difference, "iou_difference": 100 * (better["iou"]["mean"]
@@ -283,22 +296,27 @@ def write_report(out: Path, args: argparse.Namespace) -> dict:
     runs = _finished(out)
     summaries = {name: summarise(r) for name, r in runs.items() if r}
     verdicts = [{**dataclasses.asdict(claim), **verdict(claim, summaries)} for claim in CLAIMS]
-    seconds = [(r["train_seconds"] + r["eval_seconds"], r["train_cpu_seconds"] + r["eval_cpu_seconds"])
-               for arm_runs in runs.values() for r in arm_runs]  # fmt: skip
-    report = {"world": {**WORLD, "data": str(args.data)}, "steps": args.steps, "arms": summaries,
-              "claims": verdicts, "runs": runs, "wall_hours": sum(s[0] for s in seconds) / 3600,
-              "cpu_hours": sum(s[1] for s in seconds) / 3600}  # fmt: skip
+    hours: dict[str, dict[str, float]] = {}  # device -> wall-clock and CPU hours of its runs (training + scoring)
+    for run in (r for arm_runs in runs.values() for r in arm_runs):
+        device = hours.setdefault(run.get("device", "CPU"), {"runs": 0, "wall_hours": 0.0, "cpu_hours": 0.0})
+        device["runs"] += 1
+        device["wall_hours"] += (run["train_seconds"] + run["eval_seconds"]) / 3600
+        device["cpu_hours"] += (run["train_cpu_seconds"] + run["eval_cpu_seconds"]) / 3600
+    report = {"world": {**WORLD, "data": str(args.data)}, "arms": summaries, "claims": verdicts, "runs": runs,
+              "hours": hours}  # fmt: skip
     (out / "study.json").write_text(json.dumps(report, indent=2) + "\n")
     lines = [
-        f"Every arm: {args.steps} steps of batch 1 on the training scenes of `{args.data}`, scored on its held-out "
-        "scenes; mean ± standard deviation over seeds (%).",
+        f"Every arm: its steps of batch 1 on the training scenes of `{args.data}`, scored on its held-out scenes; "
+        "mean ± standard deviation over seeds (%). The two arms of a claim always share their budget.",
         "",
-        "| arm | what differs | seeds | mIoU | IoU | RayIoU | train min |",
-        "| --- | --- | --- | --- | --- | --- | --- |",
+        "| arm | what differs | steps | trained on | seeds | mIoU | IoU | RayIoU | train min |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- |",
     ]
     for name, summary in summaries.items():
-        lines.append(f"| `{name}` | {ARMS[name].description} | {len(summary['seeds'])} | {_cell(summary, 'miou')} | "
-                     f"{_cell(summary, 'iou')} | {_cell(summary, 'rayiou')} | {summary['train_minutes']:.1f} |")
+        steps = ", ".join(map(str, summary["steps"]))
+        lines.append(f"| `{name}` | {ARMS[name].description} | {steps} | {', '.join(summary['devices'])} | "
+                     f"{len(summary['seeds'])} | {_cell(summary, 'miou')} | {_cell(summary, 'iou')} | "
+                     f"{_cell(summary, 'rayiou')} | {summary['train_minutes']:.1f} |")
     lines += ["", "| paper | claim | better | worse | mIoU difference | IoU difference | verdict |",
               "| --- | --- | --- | --- | --- | --- | --- |"]  # fmt: skip
     for v in verdicts:
@@ -306,7 +324,10 @@ def write_report(out: Path, args: argparse.Namespace) -> dict:
         iou = "-" if "iou_difference" not in v else f"{v['iou_difference']:+.2f}"
         lines.append(f"| {v['paper']} | {v['text']} | `{v['better']}` | `{v['worse']}` | {diff} | {iou} | "
                      f"{v['status']} |")
-    lines += ["", f"{len(seconds)} runs, {report['wall_hours']:.1f} h wall-clock, {report['cpu_hours']:.1f} CPU hours."]
+    lines.append("")
+    for device, spent in hours.items():
+        lines.append(f"- {device}: {spent['runs']} runs, {spent['wall_hours']:.2f} h wall-clock, "
+                     f"{spent['cpu_hours']:.2f} CPU hours (the process and its data workers).")
     (out / "study.md").write_text("\n".join(lines) + "\n")
     _plot(summaries, out / "study.png")
     return report
@@ -366,7 +387,7 @@ def main() -> None:
         write_report(args.out, args)
     report = write_report(args.out, args)
     print((args.out / "study.md").read_text())
-    print(f"[study] done: {report['cpu_hours']:.1f} CPU hours")
+    print(f"[study] done: {report['hours']}")
 
 
 if __name__ == "__main__":

@@ -34,7 +34,7 @@ from occkit.viz.bev import bev_image
 __all__ = ["run_demo", "DEMO_MODELS", "DEMO_WORLD"]
 
 #: Zoo entries the demo trains, one per family, with their optimizer steps (docs/training.md gives the minutes).
-DEMO_MODELS: dict[str, int] = {"daocc_tiny": 700, "da_occ_tiny": 250, "flashocc_tiny": 250}
+DEMO_MODELS: dict[str, int] = {"daocc_tiny": 400, "da_occ_tiny": 200, "flashocc_tiny": 200}
 #: The label space of the demo's world and models: Occ3D (the world writes its labels and visibility masks).
 DEMO_SPACE = OCC3D_SPACE
 #: The synthetic world of the demo: 10 scenes of 24 key frames at 400 x 225 (the last 2-3 scenes held out).
@@ -132,11 +132,7 @@ def _report(out: Path, results: dict, baseline: dict, seconds: float, render: Pa
 
 def _training_signals(name: str) -> str:
     """What supervises a zoo entry in training beside the occupancy labels (none of it is an input at inference)."""
-    data = zoo.experiment(name).data
-    signals = ["3D boxes (detection head)"] if data.boxes else []
-    if data.depth_downsample:
-        signals.append("LiDAR depth and height maps")
-    return ", ".join(signals) or "-"
+    return ", ".join(zoo.model_config(name)[1].training_targets) or "-"
 
 
 def _training_time(folder: Path, seconds: float) -> float:

@@ -106,3 +106,22 @@ def test_every_paper_entry_names_its_row_in_its_header_and_in_the_reproducing_gu
             continue
         assert f"| `{name}` |" in guide, f"docs/reproducing.md does not list {name}"
         assert row.result in " ".join(header.split()), f"{name}'s config header does not name {row.result}"
+
+
+@pytest.mark.parametrize("name", zoo.names())
+def test_what_supervises_an_entry_in_training_is_what_its_data_loads(name):
+    experiment = zoo.experiment(name)
+    targets = experiment.model.training_targets
+    assert ("3D boxes" in targets) == (getattr(experiment.model, "detection", None) is not None)
+    if "3D boxes" in targets:
+        assert experiment.data.boxes
+    if any(target.startswith("LiDAR") for target in targets):
+        assert experiment.data.depth_downsample > 0 and experiment.data.sweeps >= 0
+    assert not set(targets) & set(experiment.model.sensors)
+
+
+def test_training_targets_follow_the_switches():
+    assert zoo.model_config("daocc_no_detection")[1].training_targets == ()
+    assert zoo.model_config("da_occ_depth")[1].training_targets == ("LiDAR depth", "LiDAR heights")
+    assert zoo.model_config("da_occ_tiny")[1].training_targets == ("LiDAR heights",)
+    assert zoo.model_config("flashocc_tiny")[1].training_targets == ()

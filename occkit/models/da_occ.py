@@ -173,6 +173,12 @@ class DirectionAwareOccConfig:
         return ("cameras",)
 
     @property
+    def training_targets(self) -> tuple[str, ...]:
+        """What supervises the model in training beside the occupancy labels (never an input at inference)."""
+        targets = ("LiDAR depth",) if self.loss_weights.depth else ()
+        return targets + (("LiDAR heights",) if self.height_net is not None and self.loss_weights.height else ())
+
+    @property
     def depth_bins(self) -> int:
         """Bins of :attr:`depth_range` (as many as the frustum has)."""
         return int(depth_bins(self.depth_range).numel())

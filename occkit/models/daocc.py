@@ -76,6 +76,11 @@ class DAOccConfig:
         """The sensors the model reads at inference."""
         return tuple(name for name, branch in (("cameras", self.image), ("LiDAR", self.lidar)) if branch is not None)
 
+    @property
+    def training_targets(self) -> tuple[str, ...]:
+        """What supervises the model in training beside the occupancy labels (never an input at inference)."""
+        return ("3D boxes",) if self.detection is not None else ()
+
     def __post_init__(self) -> None:
         if self.image is None and self.lidar is None:
             raise ValueError("DAOcc needs a camera branch (image), a LiDAR branch (lidar), or both")

@@ -70,6 +70,11 @@ class FlashOccConfig:
         return ("cameras",)
 
     @property
+    def training_targets(self) -> tuple[str, ...]:
+        """What supervises the model in training beside the occupancy labels (never an input at inference)."""
+        return ("LiDAR depth",) if self.depth_weight else ()
+
+    @property
     def fused_channels(self) -> int:
         """Channels of the BEV entering the encoder: the LSS BEV's, or its fusion with the history's."""
         channels = self.lss.context_channels * self.lss.grid_size[2]
