@@ -59,8 +59,11 @@ def test_every_parameter_gets_a_gradient(synthetic_batch):
 def test_loss_decreases_on_a_fixed_batch(synthetic_batch):
     model = tiny().train()
     batch = synthetic_batch(batch_size=1)
-    history = fit_batch(model, batch, steps=6)  # about 0.05 of the first after 6 steps
-    assert history[-1] < 0.5 * history[0], history
+    # With the heatmap's prior initialisation the first loss is the occupancy terms' (about 6), not a focal loss in
+    # the thousands that collapses at once: it falls at every step, by about a third in 6 steps.
+    history = fit_batch(model, batch, steps=6)
+    assert all(later < earlier for earlier, later in zip(history[:-1], history[1:], strict=True)), history
+    assert history[-1] < 0.8 * history[0], history
 
 
 def test_lidar_only_variant_has_no_camera_branch(synthetic_batch):
