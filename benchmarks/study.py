@@ -246,7 +246,8 @@ def summarise(runs: list[dict]) -> dict:
     """Mean, standard deviation (0 for one run), minimum and maximum of each metric over an arm's seeds."""
     summary = {"seeds": [r["seed"] for r in runs], "steps": sorted({r["steps"] for r in runs}),
                "devices": sorted({r.get("device", "CPU") for r in runs}),
-               "train_minutes": statistics.mean(r["train_seconds"] for r in runs) / 60}
+               "train_minutes": statistics.mean(r["train_seconds"] for r in runs) / 60,
+               "train_cpu_minutes": statistics.mean(r["train_cpu_seconds"] for r in runs) / 60}
     for key in METRICS:
         values = [r[key] for r in runs]
         summary[key] = {"mean": statistics.mean(values), "std": statistics.stdev(values) if len(values) > 1 else 0.0,
@@ -309,14 +310,15 @@ def write_report(out: Path, args: argparse.Namespace) -> dict:
         f"Every arm: its steps of batch 1 on the training scenes of `{args.data}`, scored on its held-out scenes; "
         "mean ± standard deviation over seeds (%). The two arms of a claim always share their budget.",
         "",
-        "| arm | what differs | steps | trained on | seeds | mIoU | IoU | RayIoU | train min |",
-        "| --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+        "| arm | what differs | steps | trained on | seeds | mIoU | IoU | RayIoU | train min | train CPU min |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
     ]
     for name, summary in summaries.items():
         steps = ", ".join(map(str, summary["steps"]))
         lines.append(f"| `{name}` | {ARMS[name].description} | {steps} | {', '.join(summary['devices'])} | "
                      f"{len(summary['seeds'])} | {_cell(summary, 'miou')} | {_cell(summary, 'iou')} | "
-                     f"{_cell(summary, 'rayiou')} | {summary['train_minutes']:.1f} |")
+                     f"{_cell(summary, 'rayiou')} | {summary['train_minutes']:.1f} | "
+                     f"{summary['train_cpu_minutes']:.1f} |")
     lines += ["", "| paper | claim | better | worse | mIoU difference | IoU difference | verdict |",
               "| --- | --- | --- | --- | --- | --- | --- |"]  # fmt: skip
     for v in verdicts:
