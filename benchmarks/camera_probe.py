@@ -135,6 +135,11 @@ def run_probe(probe: str, args: argparse.Namespace) -> dict:
     return result
 
 
+def _settings(result: dict) -> tuple:
+    """What identifies a probe's result: a rerun with the same settings replaces it."""
+    return result["probe"], result["steps"], result["lr"], result["stride"], result["seed"]
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--data", type=Path, default=Path("data/demo"))
@@ -151,8 +156,8 @@ def main() -> None:
     results = [run_probe(probe, args) for probe in args.probes]
     args.out.parent.mkdir(parents=True, exist_ok=True)
     previous = json.loads(args.out.read_text()) if args.out.is_file() else []
-    keep = [r for r in previous if (r["probe"], r["steps"], r["lr"], r["stride"], r["seed"]) not in
-            {(r["probe"], r["steps"], r["lr"], r["stride"], r["seed"]) for r in results}]  # fmt: skip
+    rerun = {_settings(r) for r in results}
+    keep = [r for r in previous if _settings(r) not in rerun]
     args.out.write_text(json.dumps(keep + results, indent=2) + "\n")
 
 
