@@ -23,7 +23,10 @@ __all__ = [
     "DETECTION_CLASSES",
     "NUSCENES_TO_OCC3D",
     "NUSCENES_TO_DETECTION",
+    "LIDARSEG_CATEGORIES",
+    "LIDARSEG_TO_OCC3D",
     "occ3d_id",
+    "lidarseg_index",
     "detection_name",
     "TAXONOMIES",
 ]
@@ -176,6 +179,12 @@ NUSCENES_TO_OCC3D: dict[str, int] = {
     "vehicle.ego": IGNORE_INDEX,
 }
 
+#: nuScenes-lidarseg categories in the order of their ``index`` (0 = noise .. 31 = vehicle.ego), the per-point
+#: values of ``lidarseg/<version>/<token>_lidarseg.bin``.
+LIDARSEG_CATEGORIES: tuple[str, ...] = tuple(NUSCENES_TO_OCC3D)
+#: Occ3D id of each lidarseg index (``LIDARSEG_TO_OCC3D[i]`` for the category of index ``i``).
+LIDARSEG_TO_OCC3D: tuple[int, ...] = tuple(NUSCENES_TO_OCC3D.values())
+
 # nuScenes category -> detection class (the devkit's category_to_detection_name); others are not detection targets.
 NUSCENES_TO_DETECTION: dict[str, str] = {
     "movable_object.barrier": "barrier",
@@ -201,6 +210,12 @@ def occ3d_id(category: str) -> int:
         return NUSCENES_TO_OCC3D[category]
     except KeyError:
         raise KeyError(f"unknown nuScenes category {category!r}; known: {', '.join(NUSCENES_TO_OCC3D)}") from None
+
+
+def lidarseg_index(category: str) -> int:
+    """nuScenes-lidarseg index of a category name (``"vehicle.car"`` -> 17); KeyError lists the known names."""
+    occ3d_id(category)  # the same check and message
+    return LIDARSEG_CATEGORIES.index(category)
 
 
 def detection_name(category: str) -> str | None:

@@ -3,7 +3,7 @@
 
 from __future__ import annotations
 
-__all__ = ["TABLE_NAMES", "CAMERAS", "CAMERA_ORDER", "LIDAR_CHANNEL"]
+__all__ = ["TABLE_NAMES", "LIDARSEG_TABLE", "CAMERAS", "CAMERA_ORDER", "LIDAR_CHANNEL"]
 
 #: The 13 tables of a nuScenes version folder, in the devkit's load order.
 TABLE_NAMES = (
@@ -21,6 +21,9 @@ TABLE_NAMES = (
     "sample_annotation",
     "map",
 )
+
+#: The table of nuScenes-lidarseg (an extension: ``<version>/lidarseg.json``, present only where it is installed).
+LIDARSEG_TABLE = "lidarseg"
 
 #: The six camera channels in the order of BEVDet / FlashOcc / DAOcc configs (the surround view read left to
 #: right, front row then back row): the order of a model's camera inputs.

@@ -10,14 +10,8 @@ import torch
 
 from occkit.geometry.grid import OCC3D_GRID, SURROUNDOCC_GRID, VoxelGrid
 from occkit.geometry.raycast import traverse_rays
-from occkit.sim.labels import (
-    CLASS_PRIORITY,
-    FREE,
-    camera_visibility,
-    lidar_visibility,
-    occupancy_labels,
-    surroundocc_labels,
-)
+from occkit.geometry.visibility import camera_visibility, lidar_visibility
+from occkit.sim.labels import CLASS_PRIORITY, FREE, occupancy_labels, surroundocc_labels
 from occkit.sim.primitives import BOX, CYLINDER, ELLIPSOID, GroundMap, Primitives
 from occkit.sim.rig import LIDAR_TOP
 

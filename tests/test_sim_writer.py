@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from occkit.classes import NUSCENES_TO_OCC3D
-from occkit.sim.writer import make_token, save_npz, static_tables, write_points
+from occkit.data.labels import save_npz
+from occkit.sim.writer import make_token, static_tables, write_points
 
 
 def test_tokens_are_32_hex_and_pure():

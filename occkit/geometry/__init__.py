@@ -39,6 +39,8 @@ _SOURCES = {
     "Voxels": "voxelize",
     "hard_voxelize": "voxelize",
     "voxelize_batch": "voxelize",
+    "lidar_visibility": "visibility",
+    "camera_visibility": "visibility",
 }
 
 __all__ = list(_SOURCES)

@@ -19,7 +19,7 @@ from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
-from occkit.nuscenes import TABLE_NAMES
+from occkit.nuscenes import LIDARSEG_TABLE, TABLE_NAMES
 from occkit.sim.config import SimConfig, scene_name
 from occkit.sim.scene import simulate_scene
 
@@ -33,8 +33,8 @@ __all__ = [
 
 #: What ``occkit sim`` writes at the top of a dataset besides its table folder (``<version>/``) and what readers
 #: add (``.occkit/``, the index cache): ``--overwrite`` replaces a folder holding these and nothing else.
-_DATASET_ENTRIES = frozenset({"annotations.json", "gts", "maps", "samples", "sweeps", "splits.json", "sim_config.yaml",
-                              "surroundocc", ".occkit"})  # fmt: skip
+_DATASET_ENTRIES = frozenset({"annotations.json", "gts", "lidarseg", "maps", "samples", "sweeps", "splits.json",
+                              "sim_config.yaml", "surroundocc", ".occkit"})  # fmt: skip
 #: The file that marks a folder as written by ``occkit sim``.
 DATASET_MARKER = "sim_config.yaml"
 
@@ -123,13 +123,13 @@ def simulate_dataset(
         raise ValueError(f"workers must be >= 1, got {workers}")
     staging = _prepare_output(out, overwrite)
     try:
-        tables: dict[str, list[dict]] = {name: [] for name in TABLE_NAMES}
+        tables: dict[str, list[dict]] = {name: [] for name in (*TABLE_NAMES, LIDARSEG_TABLE)}
         tables.update(static_tables(config.version))
         results = _run_scenes(simulate_scene, config, staging, workers, progress)
         for result in results:  # scene order, whatever the completion order
             for name, rows in result["tables"].items():
                 tables[name].extend(rows)
-        for name in TABLE_NAMES:
+        for name in (*TABLE_NAMES, LIDARSEG_TABLE):
             write_json(staging / config.version / f"{name}.json", tables[name])
         train, val = config.split()
         scene_infos = {result["scene"]: result["occ3d_infos"] for result in results}

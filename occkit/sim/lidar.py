@@ -13,11 +13,21 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from occkit.classes import lidarseg_index
 from occkit.sim.primitives import GroundMap, Primitives
 from occkit.sim.raytrace import GROUND, cast_rays, hit_labels
 from occkit.sim.rig import LidarSpec
 
-__all__ = ["MIN_RANGE", "RANGE_NOISE", "GROUND_REFLECTIVITY", "MARKING_REFLECTIVITY", "LidarScan", "scan_lidar"]
+__all__ = [
+    "MIN_RANGE",
+    "RANGE_NOISE",
+    "GROUND_REFLECTIVITY",
+    "MARKING_REFLECTIVITY",
+    "FLAT_CATEGORIES",
+    "LidarScan",
+    "scan_lidar",
+    "lidarseg_labels",
+]
 
 #: Returns closer than this (m) are discarded, as the sensor's own housing would hide them.
 MIN_RANGE = 1.0
@@ -26,6 +36,8 @@ RANGE_NOISE = 0.01
 #: Reflectivity of the flat classes (Occ3D id -> reflectivity); road paint is much brighter than asphalt.
 GROUND_REFLECTIVITY = {11: 0.12, 12: 0.2, 13: 0.25, 14: 0.1}
 MARKING_REFLECTIVITY = 0.7
+#: nuScenes category of each flat Occ3D class of the painted ground.
+FLAT_CATEGORIES = {11: "flat.driveable_surface", 12: "flat.other", 13: "flat.sidewalk", 14: "flat.terrain"}
 # Range (m) at which intensity has fallen to half.
 _FALLOFF_RANGE = 120.0
 
@@ -95,3 +107,18 @@ def scan_lidar(
         (directions[keep] * distance[:, None], intensity[:, None], rings[keep, None].astype(np.float64)), axis=1
     )
     return LidarScan(points.astype(np.float32), semantic[keep], instance[keep], distance.astype(np.float32))
+
+
+def lidarseg_labels(scan: LidarScan, categories: tuple[str, ...]) -> np.ndarray:
+    """nuScenes-lidarseg labels of a sweep: ``(N,)`` uint8 category index per point (:data:`LIDARSEG_CATEGORIES`).
+
+    A point on a solid takes its object's category (``categories[instance]``, every object's, annotated or not);
+    a point on the ground takes the flat category of the ground class under it.
+    """
+    labels = np.zeros(len(scan), np.uint8)  # 0 = noise, which no kept return is
+    solid = scan.instance >= 0
+    per_object = np.array([lidarseg_index(c) for c in categories], np.uint8)
+    labels[solid] = per_object[scan.instance[solid]]
+    for flat_class, category in FLAT_CATEGORIES.items():
+        labels[~solid & (scan.semantic == flat_class)] = lidarseg_index(category)
+    return labels

@@ -16,7 +16,9 @@ from typing import NamedTuple
 
 import numpy as np
 
+from occkit.data.labels import write_occ3d_labels, write_surroundocc_labels
 from occkit.geometry.grid import OCC3D_GRID, SURROUNDOCC_GRID
+from occkit.geometry.visibility import camera_visibility, lidar_visibility
 from occkit.nuscenes import CAMERAS
 from occkit.sim.config import (
     FIRST_TIMESTAMP_US,
@@ -27,8 +29,8 @@ from occkit.sim.config import (
     camera_time_offsets_us,
     scene_name,
 )
-from occkit.sim.labels import camera_visibility, lidar_visibility, occupancy_labels, surroundocc_labels
-from occkit.sim.lidar import scan_lidar
+from occkit.sim.labels import occupancy_labels, surroundocc_labels
+from occkit.sim.lidar import lidarseg_labels, scan_lidar
 from occkit.sim.primitives import Primitives
 from occkit.sim.raytrace import cast_rays
 from occkit.sim.render import render_camera
@@ -36,8 +38,8 @@ from occkit.sim.rig import LIDAR_TOP, CameraSpec, camera_rig, yaw_quaternion
 from occkit.sim.world import BoxState, World, generate_world
 from occkit.sim.writer import (
     make_token,
-    save_npz,
     write_jpeg,
+    write_lidarseg,
     write_png,
     write_points,
 )
@@ -164,6 +166,12 @@ class _SceneWriter:
             }
         )
         return token
+
+    def add_lidarseg(self, token: str, labels: np.ndarray) -> None:
+        """Write the lidarseg labels of the LiDAR sample_data ``token`` and its row (whose token is the same)."""
+        filename = f"lidarseg/{self.config.version}/{token}_lidarseg.bin"
+        write_lidarseg(self.root / filename, labels)
+        self.rows["lidarseg"].append({"token": token, "sample_data_token": token, "filename": filename})
 
     def link_sample_data(self) -> None:
         by_channel: dict[str, list[dict]] = defaultdict(list)
@@ -296,7 +304,10 @@ def simulate_scene(config: SimConfig, index: int, root: Path, progress: Callable
                 write_points(scene.root / filename, scan.points)
             # A sweep belongs to the next key frame, so the devkit interpolates boxes between it and the previous one.
             sample = -(-j // SWEEPS_PER_KEY_FRAME)
-            scene.add_sample_data(LIDAR_TOP.name, timestamp, ego2global, key_frame, sample, filename, None)
+            token = scene.add_sample_data(LIDAR_TOP.name, timestamp, ego2global, key_frame, sample, filename, None)
+            if key_frame is not None:  # nuScenes-lidarseg labels key frames only
+                with timer("write"):
+                    scene.add_lidarseg(token, lidarseg_labels(scan, world.categories))
             sweeps[j] = _Sweep(scan.points, scan.instance, ego2global, filename)
         return sweeps[j]
 
@@ -362,12 +373,11 @@ def simulate_scene(config: SimConfig, index: int, root: Path, progress: Callable
             )
         gt_path = f"gts/{scene.name}/{sample_token}/labels.npz"
         with timer("write"):
-            save_npz(scene.root / gt_path, semantics=semantics, mask_lidar=mask_lidar, mask_camera=mask_camera)
+            write_occ3d_labels(scene.root / gt_path, semantics, mask_lidar, mask_camera)
             if config.surroundocc:
                 lidar_file = Path(key_sweep.filename).name
                 sparse = surroundocc_labels(primitives, world.ground, ego2global @ lidar2ego, SURROUNDOCC_GRID)
-                (scene.root / "surroundocc" / "samples").mkdir(parents=True, exist_ok=True)
-                np.save(scene.root / "surroundocc" / "samples" / f"{lidar_file}.npy", sparse)
+                write_surroundocc_labels(scene.root / "surroundocc" / "samples" / f"{lidar_file}.npy", sparse)
 
         ego_xy = ego2global[:2, 3]
         lidar_counts = np.bincount(key_instances[key_instances >= 0]) if (key_instances >= 0).any() else np.zeros(0)

@@ -84,6 +84,7 @@ class World:
         sky_zenith, sky_horizon: ``(3,)`` float32 sRGB sky colours in ``[0, 1]``.
         location: nuScenes log location, ``"synth-city-<k>"``.
         objects: the annotated objects (those that get boxes), by instance id.
+        categories: nuScenes category of every object, annotated or not, indexed by instance id.
         ego_path_length: metres the ego drives in ``config.duration`` seconds.
     """
 
@@ -105,6 +106,7 @@ class World:
         self.ego_path_length = float(self._ego.s(config.duration) - self._ego.s(0.0))
         self._kinds = Counter(o.category if o.size is not None else f"{o.category}.{o.kind}" for o in accepted)
         self.objects = tuple(AnnotatedObject(i, o.category) for i, o in enumerate(accepted) if o.size is not None)
+        self.categories = tuple(o.category for o in accepted)
         self._build_tables(accepted)
 
     def _build_tables(self, accepted: list[Object]) -> None:

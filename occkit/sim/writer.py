@@ -8,19 +8,19 @@ Layout under the dataset root::
     samples/CAM_*/<log>__CAM_*__<timestamp>.jpg
     samples/LIDAR_TOP/<log>__LIDAR_TOP__<timestamp>.pcd.bin      float32 (N, 5): x, y, z, intensity, ring
     sweeps/LIDAR_TOP/<log>__LIDAR_TOP__<timestamp>.pcd.bin
+    lidarseg/<version>/<token>_lidarseg.bin   uint8 per key-frame point: nuScenes-lidarseg category index
+    <version>/lidarseg.json               the lidarseg table (token = the LiDAR sample_data token)
     gts/<scene>/<sample_token>/labels.npz semantics, mask_lidar, mask_camera: uint8 (200, 200, 16)
     annotations.json                      Occ3D-style scene infos with train/val splits
 
-Reproducibility: tokens are hashes of names, tables are written in a fixed order, and ``.npz`` archives are
-written with fixed zip timestamps (``numpy.savez`` stamps the current time into every archive).
+Reproducibility: tokens are hashes of names, tables are written in a fixed order, and the Occ3D label archives
+are written by :func:`occkit.data.labels.write_occ3d_labels` with fixed zip timestamps.
 """
 
 from __future__ import annotations
 
 import hashlib
-import io
 import json
-import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -37,7 +37,7 @@ __all__ = [
     "write_jpeg",
     "write_png",
     "write_points",
-    "save_npz",
+    "write_lidarseg",
 ]
 
 
@@ -121,16 +121,9 @@ def write_points(path: Path, points: np.ndarray) -> None:
     path.write_bytes(np.ascontiguousarray(points, dtype="<f4").tobytes())
 
 
-def save_npz(path: Path, compressed: bool = True, **arrays: np.ndarray) -> None:
-    """``numpy.savez_compressed`` with a fixed timestamp in the zip entries, so equal arrays give equal bytes."""
+def write_lidarseg(path: Path, labels: np.ndarray) -> None:
+    """``(N,)`` nuScenes-lidarseg labels as the dataset ships them: one uint8 category index per point."""
+    if labels.ndim != 1:
+        raise ValueError(f"{path}: lidarseg labels must have shape (N,), got {labels.shape}")
     path.parent.mkdir(parents=True, exist_ok=True)
-    buffer = io.BytesIO()
-    method = zipfile.ZIP_DEFLATED if compressed else zipfile.ZIP_STORED
-    with zipfile.ZipFile(buffer, "w", compression=method) as archive:
-        for name, array in arrays.items():
-            member = io.BytesIO()
-            np.lib.format.write_array(member, np.asanyarray(array), allow_pickle=False)
-            info = zipfile.ZipInfo(f"{name}.npy", date_time=(1980, 1, 1, 0, 0, 0))
-            info.compress_type = method
-            archive.writestr(info, member.getvalue())
-    path.write_bytes(buffer.getvalue())
+    path.write_bytes(np.ascontiguousarray(labels, dtype=np.uint8).tobytes())
