@@ -61,7 +61,7 @@ from occkit.label_space import label_space
 from occkit.nuscenes import CAMERAS
 from occkit.types import Sample
 
-__all__ = ["DatasetConfig", "OccupancyDataset", "SampleError"]
+__all__ = ["DatasetConfig", "OccupancyDataset", "SampleError", "read_points"]
 
 log = logging.getLogger(__name__)
 
@@ -138,7 +138,7 @@ class DatasetConfig:
 POINT_BYTES = 20
 
 
-def _read_points(path: Path, token: str) -> np.ndarray:
+def read_points(path: Path, token: str) -> np.ndarray:
     """``(N, 5)`` float32 points; the file's byte size must be a whole number of points (``np.fromfile`` alone
     would drop a partial point at the end without a word)."""
     try:
@@ -438,7 +438,7 @@ class OccupancyDataset(torch.utils.data.Dataset):
     def _load_points(self, record: FrameRecord, sample: Sample, rng: np.random.Generator) -> Tensor:
         """Key frame plus sweeps in the key LiDAR frame, ``(x, y, z, intensity, time lag)``; returns the key points."""
         path = self.root / record.lidar_path
-        raw = _read_points(path, record.token)
+        raw = read_points(path, record.token)
         if len(raw) == 0:
             # A LiDAR key frame always has returns; an empty file is a failed copy, and scoring it skews the metrics.
             raise SampleError(f"sample {record.token}: {path} is empty (0 points)")
@@ -447,7 +447,7 @@ class OccupancyDataset(torch.utils.data.Dataset):
         clouds = [key]
         for sweep in record.sweeps[: self.config.sweeps]:
             sweep_path = self.root / sweep.path
-            raw = _read_points(sweep_path, record.token)
+            raw = read_points(sweep_path, record.token)
             if len(raw) == 0:
                 # Sweeps only densify the key frame: an empty one leaves the frame usable, so it is named, not fatal.
                 warnings.warn(f"sample {record.token}: sweep {sweep_path} is empty (0 points)", stacklevel=2)
