@@ -130,6 +130,61 @@ def _run_sim(args: argparse.Namespace) -> int:
     return 0
 
 
+# ----------------------------------------------------------------------------------------------------- label
+def _add_label(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--root", type=Path, required=True, help="nuScenes-layout dataset root with nuScenes-lidarseg")
+    parser.add_argument("--version", required=True, help="table folder, e.g. v1.0-mini, v1.0-trainval, v1.0-synth")
+    parser.add_argument("--out", type=Path, required=True,
+                        help="folder for the labels (train on them with --set data.label_root=OUT)")
+    parser.add_argument("--label-space", choices=LABEL_SPACE_NAMES, default="occ3d",
+                        help="occ3d: ego frame, 0.4 m, with camera and LiDAR masks (default); surroundocc: LiDAR "
+                        "frame, 0.5 m, sparse rows")
+    parser.add_argument("--densify", choices=("none", "poisson"), default="none",
+                        help="poisson: SurroundOcc's surface reconstruction fills gaps between points (needs the "
+                        "[labels] extra, open3d)")
+    parser.add_argument("--sweeps", type=integer(0), default=None, metavar="N",
+                        help="non-key sweeps used per key-frame interval (default: all; 0: key frames only)")
+    parser.add_argument("--mask-window", type=integer(0), default=1, metavar="K",
+                        help="mask_lidar casts the sweeps of K key-frame intervals on each side (default 1)")
+    parser.add_argument("--scene", dest="scenes", action="append", metavar="NAME",
+                        help="label only this scene (repeatable; default: every scene)")
+    parser.add_argument("--workers", type=integer(1), default=1, help="scenes labelled in parallel processes")
+    parser.add_argument("--overwrite", action="store_true", help="replace a previous occkit label output in --out")
+
+
+def _run_label(args: argparse.Namespace) -> int:
+    from tqdm import tqdm
+
+    from occkit.labeling.pipeline import LabelConfig, check_label_output, label_dataset
+
+    input_folder(args.root, "--root")
+    output_folder(args.out, "--out")
+    check_label_output(args.out, args.overwrite)
+    config = LabelConfig(label_space=args.label_space, sweeps=args.sweeps, densify=args.densify,
+                         mask_window=args.mask_window)  # fmt: skip
+    if config.densify == "poisson":
+        from occkit.labeling.voxels import require_open3d
+
+        require_open3d()  # fail before any work
+
+    with tqdm(unit="frame", desc="label", delay=0.5) as bar:  # delayed: a bad dataset fails before it shows
+
+        def scene_done(summary: dict) -> None:
+            points = summary["points"]
+            bar.write(f"{summary['scene']}: {summary['key_frames']} key frames, {summary['sweeps']} sweeps, "
+                      f"{points['static'] + points['objects']} points used ({points['objects']} on "
+                      f"{summary['instances']} objects), {summary['occupied_voxels_per_frame']:.0f} voxels labelled "
+                      f"per frame, {summary['seconds']['total']:.1f} s")  # fmt: skip
+
+        summary = label_dataset(args.root, args.version, args.out, config, workers=args.workers, scenes=args.scenes,
+                                overwrite=args.overwrite, progress=bar.update, on_scene=scene_done)  # fmt: skip
+    print(f"wrote {config.label_space} labels of {summary['key_frames']} key frames to {args.out} in "
+          f"{summary['seconds']:.1f} s ({summary['seconds_per_key_frame']:.2f} s per key frame per worker)")
+    if config.label_space == "occ3d":
+        print(f"train on them: occkit train ... --set data.root={args.root} --set data.label_root={args.out}")
+    return 0
+
+
 # ----------------------------------------------------------------------------------------------------- index
 def _add_index(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--root", type=Path, required=True, help="dataset root (holds <version>/, samples/, gts/)")
@@ -752,6 +807,8 @@ COMMANDS: dict[str, Command] = {
     ),
     "sim": ("simulate a synthetic driving dataset in the nuScenes + Occ3D layout", _add_sim, _run_sim),
     "index": ("index the key frames of a nuScenes-layout dataset", _add_index, _run_index),
+    "label": ("build occupancy labels and visibility masks from a dataset's LiDAR sweeps, lidarseg and boxes",
+              _add_label, _run_label),
     "eval-preds": (
         "score Occ3D predictions against a gts/ tree: mIoU, IoU and RayIoU",
         _add_eval_preds,

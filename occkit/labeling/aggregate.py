@@ -95,8 +95,9 @@ def points_in_boxes(points: np.ndarray, boxes: Boxes, scale: float = 1.0) -> tup
     if len(boxes) == 0 or len(points) == 0:
         return owner, local
     half = boxes.size[:, [1, 0, 2]] * (scale / 2)  # (length, width, height) along the box's x, y, z
+    buckets = _Buckets(points[:, :2])
     for b in np.argsort(-np.prod(boxes.size, axis=1), kind="stable"):  # largest first: smaller boxes overwrite
-        near = np.flatnonzero(np.abs(points[:, :2] - boxes.center[b, :2]).max(axis=1) <= np.linalg.norm(half[b]))
+        near = buckets.near(boxes.center[b, :2], float(np.linalg.norm(half[b])))
         if near.size == 0:
             continue
         inside = (points[near] - boxes.center[b]) @ boxes.rotation[b]
@@ -104,6 +105,34 @@ def points_in_boxes(points: np.ndarray, boxes: Boxes, scale: float = 1.0) -> tup
         owner[near[hit]] = b
         local[near[hit]] = inside[hit]
     return owner, local
+
+
+class _Buckets:
+    """Points sorted into square cells of the ground plane, to find those near a place without a full scan."""
+
+    def __init__(self, xy: np.ndarray, cell: float = 4.0) -> None:
+        self.cell = cell
+        index = np.floor(xy / cell).astype(np.int64)
+        self.low = index.min(axis=0)
+        self.rows = int(index[:, 1].max() - self.low[1]) + 1
+        key = (index[:, 0] - self.low[0]) * self.rows + (index[:, 1] - self.low[1])
+        self.order = np.argsort(key, kind="stable")
+        self.keys = key[self.order]
+        self.columns = int(index[:, 0].max() - self.low[0]) + 1
+
+    def near(self, centre: np.ndarray, radius: float) -> np.ndarray:
+        """Indices of the points in the cells the square ``centre +- radius`` touches (a superset of those in it),
+        in increasing order."""
+        lo = np.floor((centre - radius) / self.cell).astype(np.int64) - self.low
+        hi = np.floor((centre + radius) / self.cell).astype(np.int64) - self.low
+        lo_y, hi_y = max(int(lo[1]), 0), min(int(hi[1]), self.rows - 1)
+        if lo_y > hi_y:
+            return np.zeros(0, np.int64)
+        parts = []
+        for column in range(max(int(lo[0]), 0), min(int(hi[0]), self.columns - 1) + 1):
+            start, stop = np.searchsorted(self.keys, [column * self.rows + lo_y, column * self.rows + hi_y + 1])
+            parts.append(self.order[start:stop])
+        return np.sort(np.concatenate(parts)) if parts else np.zeros(0, np.int64)
 
 
 def _transform(transform: np.ndarray, points: np.ndarray) -> np.ndarray:

@@ -26,8 +26,8 @@ from occkit.data.tables import NuScenesTables, TableError
 from occkit.geometry.numpy_se3 import quaternion_to_matrix, transform_from_quaternion
 from occkit.nuscenes import LIDAR_CHANNEL, LIDARSEG_TABLE
 
-__all__ = ["LidarsegMissingError", "Boxes", "SweepPlan", "KeyFramePlan", "ScenePlan", "plan_scenes", "lidarseg_to_occ3d",
-           "read_sweep"]
+__all__ = ["LidarsegMissingError", "Boxes", "SweepPlan", "KeyFramePlan", "ScenePlan", "plan_scenes",
+           "lidarseg_to_occ3d", "read_sweep"]
 
 
 class LidarsegMissingError(FileNotFoundError):
@@ -220,8 +220,11 @@ class _Planner:
         for annotation in current:
             before = previous.get(annotation["instance_token"])
             if before is not None:
-                centre = (1 - amount) * np.asarray(before["translation"]) + amount * np.asarray(annotation["translation"])
-                rotation = _slerp(np.asarray(before["rotation"], float), np.asarray(annotation["rotation"], float), amount)
+                centre = np.asarray(before["translation"]) + amount * (
+                    np.asarray(annotation["translation"]) - np.asarray(before["translation"])
+                )
+                rotation = _slerp(np.asarray(before["rotation"], float), np.asarray(annotation["rotation"], float),
+                                  amount)  # fmt: skip
                 annotation = {**annotation, "translation": centre.tolist(), "rotation": rotation.tolist()}
             interpolated.append(annotation)
         return self._boxes(interpolated, instances)
@@ -266,7 +269,8 @@ class _Planner:
                 ))  # fmt: skip
             cameras = []
             for row in self.data_of_sample[sample["token"]]:
-                calibration = tables.get("calibrated_sensor", row["calibrated_sensor_token"], tables.file("sample_data"))
+                calibration = tables.get("calibrated_sensor", row["calibrated_sensor_token"],
+                                         tables.file("sample_data"))  # fmt: skip
                 if row["is_key_frame"] and calibration.get("camera_intrinsic"):
                     cameras.append((self.channel[row["calibrated_sensor_token"]], self._pose(row, "calibrated_sensor"),
                                     np.asarray(calibration["camera_intrinsic"], float), int(row["width"]),

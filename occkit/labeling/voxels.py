@@ -21,7 +21,7 @@ from occkit.geometry.grid import VoxelGrid
 from occkit.labeling.aggregate import AggregateConfig, SceneCloud, points_in_boxes
 from occkit.labeling.sources import Boxes
 
-__all__ = ["DENSIFY_METHODS", "DensifyConfig", "key_frame_points", "vote", "densify_poisson"]
+__all__ = ["DENSIFY_METHODS", "DensifyConfig", "key_frame_points", "vote", "require_open3d", "densify_poisson"]
 
 #: Densification methods: none, or SurroundOcc's Poisson surface reconstruction.
 DENSIFY_METHODS = ("none", "poisson")
@@ -106,7 +106,8 @@ def vote(points: np.ndarray, labels: np.ndarray, grid: VoxelGrid, empty: int) ->
     return semantics.reshape(grid.shape)
 
 
-def _open3d():
+def require_open3d():
+    """The open3d module; ImportError with the install command where it is missing."""
     try:
         import open3d
     except ImportError as error:
@@ -137,7 +138,7 @@ def densify_poisson(
         empty: the empty label.
         config: Poisson settings.
     """
-    o3d = _open3d()
+    o3d = require_open3d()
     from scipy.spatial import cKDTree
 
     cloud = o3d.geometry.PointCloud()
