@@ -7,8 +7,10 @@ nuscenes-devkit pins numpy < 2, so it is not an occkit dependency: run this scri
 
 It loads the tables with ``NuScenes``, then visits every sample: every camera image and LiDAR sweep through
 ``get_sample_data`` (which also maps every box into the sensor frame), every annotation through ``get_box`` and
-``box_velocity``, and every Occ3D ``labels.npz``. With ``--render`` it also draws one camera and one LiDAR view with
-boxes using the devkit's own renderer. Prints a JSON summary; exits 1 on the first inconsistency.
+``box_velocity``, every key frame's nuScenes-lidarseg labels through ``LidarSegPointCloud`` (one label per point,
+every index a category of ``lidarseg_idx2name_mapping``), and every Occ3D ``labels.npz``. With ``--render`` it also
+draws one camera and one LiDAR view with boxes, and the LiDAR view coloured by lidarseg, using the devkit's own
+renderer. Prints a JSON summary; exits 1 on the first inconsistency.
 """
 
 from __future__ import annotations
@@ -24,7 +26,7 @@ matplotlib.use("Agg")
 
 import numpy as np  # noqa: E402
 from nuscenes.nuscenes import NuScenes  # noqa: E402
-from nuscenes.utils.data_classes import LidarPointCloud  # noqa: E402
+from nuscenes.utils.data_classes import LidarPointCloud, LidarSegPointCloud  # noqa: E402
 from PIL import Image  # noqa: E402
 
 
@@ -55,6 +57,20 @@ def check_sample_data(nusc: NuScenes, token: str, counts: dict) -> None:
     counts["boxes_in_sensor_frames"] += len(boxes)
 
 
+def check_lidarseg(nusc: NuScenes, sample: dict, counts: dict) -> None:
+    token = sample["data"]["LIDAR_TOP"]
+    record = nusc.get("lidarseg", token)
+    points_path = os.path.join(nusc.dataroot, nusc.get("sample_data", token)["filename"])
+    cloud = LidarSegPointCloud(points_path, os.path.join(nusc.dataroot, record["filename"]))
+    if cloud.labels.shape != (cloud.points.shape[0],):
+        fail(f"lidarseg {token}: {cloud.labels.shape} labels for {cloud.points.shape[0]} points")
+    unknown = set(np.unique(cloud.labels).tolist()) - set(nusc.lidarseg_idx2name_mapping)
+    if unknown:
+        fail(f"lidarseg {token}: indices {sorted(unknown)} name no category")
+    counts["lidarseg_frames"] += 1
+    counts["lidarseg_points"] += int(cloud.labels.shape[0])
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--root", required=True)
@@ -74,6 +90,8 @@ def main() -> None:
             "boxes_in_sensor_frames",
             "velocities",
             "occ3d_labels",
+            "lidarseg_frames",
+            "lidarseg_points",
         ),
         0,
     )
@@ -85,6 +103,8 @@ def main() -> None:
         while token:
             sample = nusc.get("sample", token)
             counts["samples"] += 1
+            if getattr(nusc, "lidarseg", None):
+                check_lidarseg(nusc, sample, counts)
             for annotation in sample["anns"]:
                 box = nusc.get_box(annotation)
                 if not np.all(np.isfinite(box.wlh)) or (box.wlh <= 0).any():
@@ -111,6 +131,11 @@ def main() -> None:
             underlay_map=True,
             out_path=os.path.join(args.render, "devkit_lidar_top.png"),
         )
+        if getattr(nusc, "lidarseg", None):
+            nusc.render_sample_data(sample["data"]["LIDAR_TOP"], show_lidarseg=True, show_lidarseg_legend=True,
+                                    out_path=os.path.join(args.render, "devkit_lidarseg.png"))
+    if counts["lidarseg_frames"] and len(nusc.lidarseg_idx2name_mapping) != 32:
+        fail(f"the devkit maps {len(nusc.lidarseg_idx2name_mapping)} lidarseg indices, nuScenes has 32")
     print(json.dumps({"devkit": "ok", **counts}, indent=2))
 
 
