@@ -19,9 +19,10 @@ PACKAGE = Path(__file__).resolve().parents[1] / "occkit"
 LAYERS: tuple[tuple[str, ...], ...] = (
     # plain values, shapes and the geometry every other layer computes with
     ("occkit.errors", "occkit.config", "occkit.classes", "occkit.types", "occkit.geometry", "occkit.label_space",
-     "occkit.arguments", "occkit.nuscenes", "occkit.figure", "occkit.weight_files"),
-    # reading and writing datasets; the synthetic world writes what data reads, importing nothing of it
-    ("occkit.data", "occkit.sim"),
+     "occkit.label_files", "occkit.arguments", "occkit.nuscenes", "occkit.figure", "occkit.weight_files"),
+    # reading and writing datasets; the synthetic world writes what data reads, importing nothing of it; labels
+    # built from a dataset's sensor data
+    ("occkit.data", "occkit.sim", "occkit.labeling"),
     # what an experiment is: plain settings, no model code
     ("occkit.experiment",),
     # what a model is scored and trained against
@@ -39,7 +40,7 @@ LAYERS: tuple[tuple[str, ...], ...] = (
 
 
 #: Packages of one layer that never import each other.
-INDEPENDENT: tuple[tuple[str, str], ...] = (("occkit.data", "occkit.sim"),)
+INDEPENDENT: tuple[tuple[str, str], ...] = (("occkit.data", "occkit.sim"), ("occkit.labeling", "occkit.sim"))
 
 
 def _module_name(path: Path) -> str:

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from occkit.classes import NUSCENES_TO_OCC3D
-from occkit.data.labels import save_npz
+from occkit.label_files import save_npz
 from occkit.sim.writer import make_token, static_tables, write_points
 
 

@@ -28,8 +28,9 @@ from pathlib import Path
 
 import numpy as np
 
-from occkit.data.labels import label_file, write_occ3d_labels, write_surroundocc_labels
+from occkit.data.labels import label_file
 from occkit.geometry.visibility import camera_visibility, lidar_visibility
+from occkit.label_files import write_occ3d_labels, write_surroundocc_labels
 from occkit.label_space import LabelSpace, label_space
 from occkit.labeling.aggregate import AggregateConfig, aggregate_scene
 from occkit.labeling.sources import ScenePlan, lidarseg_to_occ3d, plan_scenes

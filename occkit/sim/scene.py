@@ -16,9 +16,9 @@ from typing import NamedTuple
 
 import numpy as np
 
-from occkit.data.labels import write_occ3d_labels, write_surroundocc_labels
 from occkit.geometry.grid import OCC3D_GRID, SURROUNDOCC_GRID
 from occkit.geometry.visibility import camera_visibility, lidar_visibility
+from occkit.label_files import write_occ3d_labels, write_surroundocc_labels
 from occkit.nuscenes import CAMERAS
 from occkit.sim.config import (
     FIRST_TIMESTAMP_US,

@@ -14,7 +14,7 @@ Layout under the dataset root::
     annotations.json                      Occ3D-style scene infos with train/val splits
 
 Reproducibility: tokens are hashes of names, tables are written in a fixed order, and the Occ3D label archives
-are written by :func:`occkit.data.labels.write_occ3d_labels` with fixed zip timestamps.
+are written by :func:`occkit.label_files.write_occ3d_labels` with fixed zip timestamps.
 """
 
 from __future__ import annotations

@@ -1,0 +1,51 @@
+"""Writers of occupancy ground truth, byte for byte reproducible: Occ3D ``labels.npz``, SurroundOcc sparse ``.npy``.
+
+Shared by the synthetic world (:mod:`occkit.sim`) and ``occkit label`` (:mod:`occkit.labeling`); the readers, which
+check what they read, are in :mod:`occkit.data.labels`.
+"""
+
+from __future__ import annotations
+
+import io
+import zipfile
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["save_npz", "write_occ3d_labels", "write_surroundocc_labels"]
+
+
+def save_npz(path: str | Path, compressed: bool = True, **arrays: np.ndarray) -> None:
+    """``numpy.savez_compressed`` with a fixed timestamp in the zip entries, so equal arrays give equal bytes
+    (``numpy.savez`` stamps the current time into every archive)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    buffer = io.BytesIO()
+    method = zipfile.ZIP_DEFLATED if compressed else zipfile.ZIP_STORED
+    with zipfile.ZipFile(buffer, "w", compression=method) as archive:
+        for name, array in arrays.items():
+            member = io.BytesIO()
+            np.lib.format.write_array(member, np.asanyarray(array), allow_pickle=False)
+            info = zipfile.ZipInfo(f"{name}.npy", date_time=(1980, 1, 1, 0, 0, 0))
+            info.compress_type = method
+            archive.writestr(info, member.getvalue())
+    path.write_bytes(buffer.getvalue())
+
+
+def write_occ3d_labels(
+    path: str | Path, semantics: np.ndarray, mask_lidar: np.ndarray, mask_camera: np.ndarray
+) -> None:
+    """Write an Occ3D ``labels.npz`` as the benchmark ships it: the three arrays as uint8 ``(X, Y, Z)``, byte for byte
+    reproducible."""
+    save_npz(path, semantics=np.asarray(semantics, np.uint8), mask_lidar=np.asarray(mask_lidar, np.uint8),
+             mask_camera=np.asarray(mask_camera, np.uint8))  # fmt: skip
+
+
+def write_surroundocc_labels(path: str | Path, rows: np.ndarray) -> None:
+    """Write SurroundOcc sparse labels: int64 ``(N, 4)`` rows ``(x, y, z, label)`` as a ``.npy`` file."""
+    rows = np.asarray(rows)
+    if rows.ndim != 2 or rows.shape[1] != 4:
+        raise ValueError(f"{path}: SurroundOcc rows must have shape (N, 4), got {rows.shape}")
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    np.save(path, rows.astype(np.int64))
