@@ -33,6 +33,7 @@ import numpy as np
 
 from occkit.classes import OCC3D
 from occkit.data.labels import read_occ3d_labels
+from occkit.geometry.grid import OCC3D_GRID
 from occkit.labeling.pipeline import SUMMARY_FILE, LabelConfig, label_dataset
 from occkit.metrics.confusion import confusion_matrix, geometry_iou, iou_from_confusion, miou
 
@@ -106,6 +107,41 @@ def score(labels: Path, data: Path) -> dict:
     return result
 
 
+#: Distance bins (m from the ego, in the ground plane) of the recall table.
+DISTANCE_BINS = (0, 10, 20, 30, 40, 60)
+
+
+def recall_by_distance(labels: Path, data: Path) -> dict:
+    """Per class and distance bin, under the exact camera mask: the exact voxels, and the shares the generated
+    labels give the same class, leave free (no point ever landed there), or give another class."""
+    centres = (np.arange(OCC3D_GRID.shape[0]) + 0.5) * OCC3D_GRID.voxel_size[0] + OCC3D_GRID.lower[0]
+    distance = np.hypot(centres[:, None], centres[None, :])
+    bin_of = np.digitize(distance, DISTANCE_BINS) - 1  # (X, Y); beyond the last edge -> len(bins) - 1
+    bins = len(DISTANCE_BINS) - 1
+    counts = np.zeros((OCC3D.num_classes, bins, 4), np.int64)  # exact, same, free, other
+    for path in sorted(labels.glob("*/*/labels.npz")):
+        generated = read_occ3d_labels(path)
+        exact = read_occ3d_labels(data / "gts" / path.relative_to(labels))
+        seen = exact.mask_camera & (exact.semantics != OCC3D.empty_index)
+        cls = exact.semantics[seen].astype(np.int64)
+        where = np.broadcast_to(bin_of[:, :, None], seen.shape)[seen]
+        ok = where < bins
+        cls, where, got = cls[ok], where[ok], generated.semantics[seen][ok]
+        outcome = np.where(got == cls, 1, np.where(got == OCC3D.empty_index, 2, 3))
+        np.add.at(counts, (cls, where, 0), 1)
+        np.add.at(counts, (cls, where, outcome), 1)
+    table = {}
+    for c in OCC3D.semantic_ids:
+        rows = []
+        for b in range(bins):
+            total = int(counts[c, b, 0])
+            rows.append({"from": DISTANCE_BINS[b], "to": DISTANCE_BINS[b + 1], "voxels": total,
+                         **{key: (int(counts[c, b, i]) / total if total else None)
+                            for i, key in ((1, "recall"), (2, "free"), (3, "other"))}})  # fmt: skip
+        table[OCC3D.classes[c]] = rows
+    return table
+
+
 def train_on(labels: str, label_root: Path | None, args: argparse.Namespace) -> dict:
     """``daocc_tiny`` trained on the world's training scenes with the given labels, scored on exact val labels."""
     result_file = args.out / f"train-{_slug(labels)}.json"
@@ -166,6 +202,16 @@ def markdown(report: dict) -> str:
     for name, row in report["variants"].items():
         per_class = row["scores"]["camera"]["per_class_iou"]
         lines.append(f"| {name} | " + " | ".join(_pct(per_class[c]) for c in classes) + " |")
+    if report.get("recall_by_distance"):
+        name, table = report["recall_by_distance"]["variant"], report["recall_by_distance"]["classes"]
+        edges = [f"{row['from']}-{row['to']} m" for row in next(iter(table.values()))]
+        lines += ["", f"Recall by distance from the ego under the exact camera mask ({name}): the share of the exact "
+                  "voxels of a class that the generated labels give that class; in brackets the share they leave free "
+                  "(no point landed there):", "", "| class | " + " | ".join(edges) + " |",
+                  "| --- " * (len(edges) + 1) + "|"]  # fmt: skip
+        for cls in ("driveable_surface", "sidewalk", "terrain", "car", "manmade", "vegetation"):
+            cells = [f"{_pct(r['recall'])} ({_pct(r['free'])})" if r["voxels"] else "-" for r in table[cls]]
+            lines.append(f"| {cls} | " + " | ".join(cells) + " |")
     if report.get("training"):
         lines += ["", "daocc_tiny scored on the exact labels of the held-out scenes:", "",
                   "| trained on | steps | mIoU | IoU | RayIoU |", "| --- | --- | --- | --- | --- |"]  # fmt: skip
@@ -206,6 +252,9 @@ def main() -> None:
         print(f"[labels] {name}: camera mask IoU {100 * scores['camera']['iou']:.1f}, mIoU "
               f"{100 * scores['camera']['miou']:.1f}; {summary['seconds_per_key_frame']:.2f} s per key frame",
               flush=True)  # fmt: skip
+    best = max(report["variants"], key=lambda name: report["variants"][name]["scores"]["camera"]["miou"])
+    report["recall_by_distance"] = {"variant": best,
+                                    "classes": recall_by_distance(args.out / "labels" / _slug(best), args.data)}
     if args.train_steps:
         label_variant(args.train_on, args)
         report["training"] = [train_on("exact", None, args),

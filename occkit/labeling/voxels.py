@@ -115,6 +115,8 @@ def require_open3d():
             f"densify=poisson needs open3d ({error}): pip install -e \".[labels]\" (on Linux open3d also needs the "
             "system library libusb-1.0, e.g. apt-get install libusb-1.0-0)"
         ) from None
+    # Poisson's solver warns about numerical corner cases on every frame; errors still show.
+    open3d.utility.set_verbosity_level(open3d.utility.VerbosityLevel.Error)
     return open3d
 
 
