@@ -176,8 +176,13 @@ def _run_label(args: argparse.Namespace) -> int:
                       f"{summary['instances']} objects), {summary['occupied_voxels_per_frame']:.0f} voxels labelled "
                       f"per frame, {summary['seconds']['total']:.1f} s")  # fmt: skip
 
+        def start(frames: int) -> None:
+            bar.total = frames
+            bar.refresh()
+
         summary = label_dataset(args.root, args.version, args.out, config, workers=args.workers, scenes=args.scenes,
-                                overwrite=args.overwrite, progress=bar.update, on_scene=scene_done)  # fmt: skip
+                                overwrite=args.overwrite, progress=bar.update, on_scene=scene_done,
+                                on_start=start)  # fmt: skip
     print(f"wrote {config.label_space} labels of {summary['key_frames']} key frames to {args.out} in "
           f"{summary['seconds']:.1f} s ({summary['seconds_per_key_frame']:.2f} s per key frame per worker)")
     if config.label_space == "occ3d":

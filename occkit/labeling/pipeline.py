@@ -178,6 +178,7 @@ def label_dataset(
     overwrite: bool = False,
     progress: Callable[[int], None] | None = None,
     on_scene: Callable[[dict], None] | None = None,
+    on_start: Callable[[int], None] | None = None,
 ) -> dict:
     """Label every key frame of the dataset at ``root`` (tables in ``root/version``) into ``out``.
 
@@ -193,6 +194,7 @@ def label_dataset(
         overwrite: replace a previous output.
         progress: called with the number of key frames finished since the last call.
         on_scene: called with each scene's summary as it finishes.
+        on_start: called with the number of key frames to label, once the scenes are planned.
 
     Returns:
         The summary written to ``out/labeling.json``: settings, per-scene summaries, totals.
@@ -206,6 +208,8 @@ def label_dataset(
     tables = load_tables(root, version)
     plans = plan_scenes(tables, scenes, config.sweeps)
     lookup = lidarseg_to_occ3d(tables)
+    if on_start is not None:
+        on_start(sum(len(plan.key_frames) for plan in plans))
     staging = out.parent / f".{out.name}.partial"
     if staging.exists():
         shutil.rmtree(staging)
