@@ -115,15 +115,13 @@ def label_scene(plan: ScenePlan, lookup: np.ndarray, config: LabelConfig, out: P
             index = np.argwhere(semantics != empty)
             write_surroundocc_labels(path, np.concatenate((index, semantics[tuple(index.T)][:, None]), axis=1))
         else:
-            global2frame = np.linalg.inv(frame2global)
+            to_frame = np.linalg.inv(frame2global)
+            to_frame[:3, 3] += to_frame[:3, :3] @ cloud.origin  # the rays are stored relative to the origin
             first = plan.key_frames[max(0, k - config.mask_window)].sweep
             last = plan.key_frames[min(len(plan.key_frames) - 1, k + config.mask_window)].sweep
-            rays = []
-            for sensor_xyz, returns in cloud.rays[first : last + 1]:
-                to_frame = global2frame.copy()
-                to_frame[:3, 3] += global2frame[:3, :3] @ cloud.origin  # the rays are stored minus the origin
-                rays.append((to_frame[:3, :3] @ sensor_xyz + to_frame[:3, 3],
-                             returns.astype(np.float64) @ to_frame[:3, :3].T + to_frame[:3, 3]))  # fmt: skip
+            rays = [(to_frame[:3, :3] @ sensor_xyz + to_frame[:3, 3],
+                     returns.astype(np.float64) @ to_frame[:3, :3].T + to_frame[:3, 3])
+                    for sensor_xyz, returns in cloud.rays[first : last + 1]]  # fmt: skip
             mask_lidar = lidar_visibility(semantics, grid, rays, free=empty)
             mask_camera = camera_visibility(semantics, grid, key.cameras, free=empty)
             observed.append(int(mask_camera.sum()))
