@@ -14,7 +14,7 @@ from occkit.cli import main
 from occkit.data.labels import read_occ3d_labels, read_surroundocc_labels
 from occkit.data.tables import load_tables
 from occkit.geometry.grid import OCC3D_GRID, VoxelGrid
-from occkit.labeling.aggregate import points_in_boxes
+from occkit.labeling.aggregate import AggregateConfig, object_membership, points_in_boxes
 from occkit.labeling.pipeline import SUMMARY_FILE, LabelConfig, label_dataset
 from occkit.labeling.sources import Boxes, LidarsegMissingError, _slerp, plan_scenes
 from occkit.labeling.voxels import vote
@@ -157,6 +157,20 @@ def test_points_in_boxes_picks_the_smallest_box_and_turns_with_it():
     assert owner.tolist() == [0, -1, 1, -1]
     assert np.allclose(local[0], [1.9, 0.0, 0.0])
     assert points_in_boxes(points, boxes, scale=1.1)[0].tolist() == [0, 0, 1, -1]
+
+
+def test_ground_under_a_tall_box_stays_ground():
+    """A sweep point just above the ground under a bus stays static however tall the box (the clearance is measured
+    from the annotated box's bottom, not the enlarged one's, which lies 0.175 m below the ground for a 3.5 m bus)."""
+    bus = Boxes(instance=np.array([0], np.int32), label=np.array([3], np.uint8), center=np.array([[0.0, 0.0, 1.75]]),
+                size=np.array([[2.9, 11.0, 3.5]]), rotation=np.eye(3)[None])  # fmt: skip
+    points = np.array([[1.0, 0.5, 0.01], [1.0, 0.5, 0.3], [3.0, -1.0, 2.0]])
+    owner, local = points_in_boxes(points, bus, 1.1)
+    assert owner.tolist() == [0, 0, 0]
+    assert object_membership(owner, local, bus, None, AggregateConfig()).tolist() == [False, True, True]
+    # A key frame's points go by their lidarseg class instead: the ground's is not the bus's.
+    classes = np.array([11, 3, 3], np.uint8)
+    assert object_membership(owner, local, bus, classes, AggregateConfig()).tolist() == [False, True, True]
 
 
 def test_vote_takes_the_majority_and_ties_to_the_lower_class():

@@ -26,7 +26,7 @@ from occkit.classes import OCC3D
 from occkit.labeling.sources import Boxes, ScenePlan, read_sweep
 
 __all__ = ["MOVING_CLASSES", "FLAT_CLASSES", "EGO_BODY", "AggregateConfig", "SceneCloud", "aggregate_scene",
-           "points_in_boxes"]  # fmt: skip
+           "points_in_boxes", "object_membership"]  # fmt: skip
 
 #: Occ3D classes of things that move: their points outside every box cannot be placed at other instants.
 MOVING_CLASSES = frozenset(OCC3D.index(n) for n in ("bicycle", "bus", "car", "construction_vehicle", "motorcycle",
@@ -45,7 +45,8 @@ class AggregateConfig:
     box_scale: float = 1.1
     """Boxes are enlarged by this factor in every dimension to take in all of an object's points (SurroundOcc)."""
     ground_clearance: float = 0.15
-    """Metres above a box's bottom below which an unlabelled sweep point is ground, not the object."""
+    """Metres above a box's bottom (the annotated box's, not the enlarged one's) below which an unlabelled sweep
+    point is ground, not the object."""
     knn_radius: float = 0.5
     """A non-key sweep point takes the class of the nearest key-frame point within this distance (m)."""
 
@@ -135,6 +136,27 @@ class _Buckets:
         return np.sort(np.concatenate(parts)) if parts else np.zeros(0, np.int64)
 
 
+def object_membership(
+    owner: np.ndarray, local: np.ndarray, boxes: Boxes, labels: np.ndarray | None, config: AggregateConfig
+) -> np.ndarray:
+    """``(N,)`` bool: the points that belong to the object whose box holds them (module doc, step 2).
+
+    Args:
+        owner, local: :func:`points_in_boxes`'s output for the sweep's points and ``boxes``.
+        boxes: the boxes at the sweep's instant.
+        labels: ``(N,)`` Occ3D classes of a key frame's points, or None for a sweep without labels.
+        config: the box enlargement and the ground clearance.
+    """
+    inside = owner >= 0
+    mine = np.zeros(len(owner), bool)
+    if labels is not None:
+        mine[inside] = labels[inside] == boxes.label[owner[inside]]
+    else:
+        bottom = -boxes.size[owner[inside], 2] / 2  # the annotated box's bottom, not the enlarged one's
+        mine[inside] = local[inside, 2] > bottom + config.ground_clearance
+    return mine
+
+
 def _transform(transform: np.ndarray, points: np.ndarray) -> np.ndarray:
     return points @ transform[:3, :3].T + transform[:3, 3]
 
@@ -160,15 +182,7 @@ def aggregate_scene(plan: ScenePlan, lookup: np.ndarray, config: AggregateConfig
         counts["returns"] += len(points)
 
         owner, local = points_in_boxes(world, sweep.boxes, config.box_scale)
-        inside = owner >= 0
-        if labels is not None:
-            box_label = sweep.boxes.label[owner[inside]]
-            mine = np.zeros(len(world), bool)
-            mine[inside] = labels[inside] == box_label
-        else:
-            bottom = -sweep.boxes.size[owner[inside], 2] * config.box_scale / 2
-            mine = np.zeros(len(world), bool)
-            mine[inside] = local[inside, 2] > bottom + config.ground_clearance
+        mine = object_membership(owner, local, sweep.boxes, labels, config)
         for b in np.unique(owner[mine]):
             sel = mine & (owner == b)
             part_labels = labels[sel] if labels is not None else np.full(int(sel.sum()), sweep.boxes.label[b], np.uint8)

@@ -71,7 +71,7 @@ def key_frame_points(
     near = np.abs(static[:, :2] - frame2global[:2, 3]).max(axis=1) <= radius
     static, static_label = static[near], cloud.static_label[near]
     owner, local = points_in_boxes(static, boxes, config.box_scale)
-    bottom = -boxes.size[owner[owner >= 0], 2] * config.box_scale / 2
+    bottom = -boxes.size[owner[owner >= 0], 2] / 2
     stale = np.zeros(len(static), bool)
     stale[owner >= 0] = local[owner >= 0, 2] > bottom + config.ground_clearance
     xyz, labels = [static[~stale]], [static_label[~stale]]
