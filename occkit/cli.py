@@ -754,6 +754,81 @@ def _run_bench(args: argparse.Namespace) -> int:
     return 0
 
 
+# ----------------------------------------------------------------------------------------------------- robustness
+def _add_robustness(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--ckpt", type=Path, help="checkpoint to score (best.pt, step-*.pt)")
+    parser.add_argument("--data", type=Path, default=None, help="dataset root (default: the one it was trained on)")
+    parser.add_argument("--split", default=None, help="split to score (default: the run's validation split)")
+    parser.add_argument("--suite", default="default", metavar="default|quick|NAMES",
+                        help="default (every corruption, every level), quick (one level of each kind of failure), "
+                             "or a comma list of NAME or NAME:LEVEL, e.g. fog,missing_camera:CAM_FRONT "
+                             "(see --list)")  # fmt: skip
+    parser.add_argument("--baseline", type=Path, default=None, metavar="FILE",
+                        help="robustness.json of a baseline model: adds the corruption errors CE and mCE")
+    parser.add_argument("--out", type=Path, help="folder for robustness.json, robustness.md, the plots and the "
+                                                 "per-case cache that a rerun resumes from")  # fmt: skip
+    parser.add_argument("--seed", type=integer(0), default=0, help="seed of the corruptions' draws (default 0)")
+    parser.add_argument("--no-rayiou", action="store_true", help="skip RayIoU (mIoU and IoU only)")
+    parser.add_argument("--workers", type=integer(0), default=1, help="data loading processes (default 1)")
+    parser.add_argument("--device", default=None, help="cpu, cuda (default: CUDA when available)")
+    parser.add_argument("--list", action="store_true", help="list the corruptions and their levels, and exit")
+
+
+def _corruption_table() -> str:
+    from occkit.data.corruptions import CORRUPTIONS
+    from occkit.robustness.suite import SUITES
+
+    lines = []
+    for corruption in CORRUPTIONS.values():
+        needs = " + ".join(corruption.needs)
+        lines.append(f"{corruption.name} ({corruption.family}; needs {needs}): {corruption.summary}")
+        for severity, label, params in zip(corruption.severities, corruption.labels, corruption.levels, strict=True):
+            values = ", ".join(f"{k}={v}" for k, v in params.items()) or "-"
+            lines.append(f"    {severity}: {label:<14} {values}")
+    quick = ", ".join(f"{c.corruption}:{c.severity}" for c in SUITES["quick"])
+    return "\n".join(lines) + f"\nsuites: default (all of the above), quick ({quick})\n"
+
+
+def _run_robustness(args: argparse.Namespace) -> int:
+    import torch
+    from tqdm import tqdm
+
+    if args.list:
+        print(_corruption_table(), end="")
+        return 0
+    if args.ckpt is None or args.out is None:
+        raise UsageError("--ckpt and --out are required (or --list)")
+    input_file(args.ckpt, "--ckpt")
+    if args.data is not None:
+        input_folder(args.data, "--data")
+    if args.baseline is not None:
+        input_file(args.baseline, "--baseline")
+    output_folder(args.out, "--out")
+    check_device(args.device)
+    from occkit.robustness import parse_suite, run_robustness
+
+    try:
+        parse_suite(args.suite)
+    except ValueError as error:
+        raise UsageError(str(error)) from None
+    device = args.device or ("cuda" if torch.cuda.is_available() else "cpu")
+    with tqdm(total=0, unit="frame", desc="robustness") as bar:
+        def progress(done: int, total: int, label: str) -> None:
+            bar.total = total
+            bar.set_description(label, refresh=False)
+            bar.update(done - bar.n)
+
+        report = run_robustness(args.ckpt, args.out, data=args.data, split=args.split, suite=args.suite,
+                                baseline=args.baseline, workers=args.workers, device=device,
+                                rayiou=not args.no_rayiou, seed=args.seed, log=tqdm.write, progress=progress)
+    print((args.out / "robustness.md").read_text(), end="")
+    written = [name for name in ("robustness.json", "robustness.md", "resilience.png", "severity.png")
+               if (args.out / name).is_file()]  # severity.png: only with a corruption of several severities
+    print(f"wrote {', '.join(written)} to {args.out} ({report['seconds']:.0f} s, {report['seconds_computed']:.0f} s "
+          "of it evaluating)")
+    return 0
+
+
 # ----------------------------------------------------------------------------------------------------- viz
 def _add_viz(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--data", type=Path, required=True, help="dataset root (nuScenes layout)")
@@ -830,6 +905,8 @@ COMMANDS: dict[str, Command] = {
                _run_export),
     "bench": ("inference latency, FPS, per-stage times, MACs and GEMM efficiency of a model; the fast path",
               _add_bench, _run_bench),
+    "robustness": ("score a checkpoint under sensor failures and corruptions: resilience, corruption error, plots",
+                   _add_robustness, _run_robustness),
     "viz": ("render ground truth, predictions and cameras with projected LiDAR / voxels to PNGs and a page",
             _add_viz, _run_viz),
     "demo": ("the whole system on a laptop: synthetic world, train two tiny models, evaluate, render, report",

@@ -33,7 +33,7 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     # training, evaluation, prediction
     ("occkit.engine",),
     # consumers of trained models
-    ("occkit.bench", "occkit.export", "occkit.viz", "occkit.environment"),
+    ("occkit.bench", "occkit.export", "occkit.viz", "occkit.environment", "occkit.robustness"),
     ("occkit.demo",),
     ("occkit.cli", "occkit.__main__"),
 )  # fmt: skip

@@ -27,6 +27,7 @@ from PIL import Image
 from torch import Tensor
 
 from occkit.classes import DETECTION_CLASSES
+from occkit.data.corruptions import SampleCorruption
 from occkit.data.index import (
     FrameRecord,
     OutdatedIndexError,
@@ -120,6 +121,11 @@ class DatasetConfig:
     """Robustness evaluation: keep every k-th LiDAR beam (2: 32 -> 16 beams, 4: 8 beams)."""
     point_dropout: float = 0.0
     """Robustness evaluation: fraction of LiDAR points dropped at random, per sweep."""
+    corruption: str | None = None
+    """Robustness evaluation: a corruption of :data:`~occkit.data.corruptions.CORRUPTIONS` applied to every sample
+    (``occkit robustness``), after the settings above; None for none."""
+    corruption_severity: int = 1
+    """The corruption's level, 1 to its number of levels."""
     depth_downsample: int = 0
     """Return LiDAR depth and height maps at this feature stride (e.g. 16); 0 for none."""
     on_error: Literal["raise", "skip"] = "raise"
@@ -204,6 +210,8 @@ class OccupancyDataset(torch.utils.data.Dataset):
             raise ValueError(f"history={config.history} needs cameras (history frames are camera frames); cameras is "
                              "empty")  # fmt: skip
         self.space = label_space(config.label_space)
+        self.corruption = None if config.corruption is None else \
+            SampleCorruption(config.corruption, config.corruption_severity, config.seed)  # fmt: skip
         self.root = Path(config.root)
         records = self._load_records()
         if config.split != "all":
@@ -232,6 +240,8 @@ class OccupancyDataset(torch.utils.data.Dataset):
         if self.config.index is not None:
             return load_index(self.config.index)[0]
         max_sweeps = max(self.config.sweeps, 0)
+        if self.corruption is not None and self.config.sweeps >= 0:
+            max_sweeps += self.corruption.lidar_delay  # the older sweeps a delayed LiDAR reads
         name = f"occkit-index-{self.config.version}-{max_sweeps}.npz"
         caches = (self.root / ".occkit" / name, Path.home() / ".cache" / "occkit" / _slug(self.root) / name)
         key = tables_key(self.root, self.config.version, max_sweeps)
@@ -354,16 +364,19 @@ class OccupancyDataset(torch.utils.data.Dataset):
         images, intrinsics, cam2ego, img_aug, augs = [], [], [], [], []
         for name in self.config.cameras:
             camera = record.cameras[name]
-            image = _read_image(self.root / camera.path, record.token, (camera.width, camera.height))
+            image = self._read_camera(record, name, record.token)
             params = sample_image_aug(self.config.image_aug, image.size, self.config.augment, rng)
             images.append(_normalised(image, params))
             intrinsics.append(_matrix(camera.intrinsics))
-            cam2ego.append(_matrix(camera.cam2keyego))
+            cam2ego.append(self._cam2ego(record, name))
             img_aug.append(params.matrix())
             augs.append(params)
         sample.images = torch.stack(images)
         sample.camera_mask = torch.ones(len(images), dtype=torch.bool)
-        failed = [i for i, name in enumerate(self.config.cameras) if name in self.config.drop_cameras]
+        failed = set(self.config.drop_cameras)
+        if self.corruption is not None:
+            failed |= self.corruption.failed_cameras(record.token, self.config.cameras)
+        failed = [i for i, name in enumerate(self.config.cameras) if name in failed]
         if failed:
             sample.images, kept = drop_cameras(sample.images, failed)
             sample.camera_mask &= kept
@@ -374,6 +387,21 @@ class OccupancyDataset(torch.utils.data.Dataset):
         sample.cam2ego = torch.stack(cam2ego)
         sample.img_aug = torch.stack(img_aug)
         return augs
+
+    def _read_camera(self, record: FrameRecord, name: str, where: str) -> Image.Image:
+        """A camera's image of a key frame as read (corrupted when the dataset has an image corruption)."""
+        camera = record.cameras[name]
+        image = _read_image(self.root / camera.path, where, (camera.width, camera.height))
+        if self.corruption is not None and self.corruption.family == "images":
+            image = Image.fromarray(self.corruption.image(np.asarray(image), record.token, name))
+        return image
+
+    def _cam2ego(self, record: FrameRecord, name: str) -> Tensor:
+        """A camera's extrinsics as the model is given them (perturbed under ``camera_extrinsics``)."""
+        matrix = record.cameras[name].cam2keyego
+        if self.corruption is not None:
+            matrix = self.corruption.cam2ego(matrix, record.token, name)
+        return _matrix(matrix)
 
     def _history_records(self, record: FrameRecord) -> list[FrameRecord]:
         """Up to ``history`` earlier key frames of the record's scene, newest first, following ``prev``."""
@@ -403,15 +431,13 @@ class OccupancyDataset(torch.utils.data.Dataset):
             where = f"{frame.token} (history of {record.token})"
             pixels = []
             for name, params in zip(self.config.cameras, augs, strict=True):
-                camera = frame.cameras[name]
-                pixels.append(_normalised(_read_image(self.root / camera.path, where, (camera.width, camera.height)),
-                                          params))  # fmt: skip
+                pixels.append(_normalised(self._read_camera(frame, name, where), params))
             frame_images = torch.stack(pixels)
             if failed:
                 frame_images = drop_cameras(frame_images, failed)[0]
             images.append(frame_images)
             intrinsics.append(torch.stack([_matrix(frame.cameras[name].intrinsics) for name in self.config.cameras]))
-            cam2ego.append(torch.stack([_matrix(frame.cameras[name].cam2keyego) for name in self.config.cameras]))
+            cam2ego.append(torch.stack([self._cam2ego(frame, name) for name in self.config.cameras]))
             ego2global.append(_matrix(frame.ego2global, torch.float64))
         padding = self.config.history - len(frames)
         # BEVDet4D's data pipeline also fills the slots before the scene's first frame with the current frame.
@@ -427,35 +453,53 @@ class OccupancyDataset(torch.utils.data.Dataset):
         sample.history_ego2global = torch.stack(ego2global)
         sample.history_padded = torch.arange(self.config.history) >= len(frames)
 
-    def _degrade(self, points: Tensor, rng: np.random.Generator) -> Tensor:
-        """Fewer beams and points, for robustness evaluation; raw rows still hold the ring index in column 4."""
+    def _degrade(self, points: Tensor, rng: np.random.Generator, token: str, sweep: int, lidar2ego) -> Tensor:
+        """Fewer beams and points, for robustness evaluation; raw rows still hold the ring index in column 4.
+        ``sweep`` numbers the sweep (0: the key frame), a stream of the corruption's draws."""
         if self.config.lidar_beams_every > 1:
             points = drop_lidar_beams(points, keep_every=self.config.lidar_beams_every)
         if self.config.point_dropout > 0:
             points = drop_points(points, self.config.point_dropout, rng)
+        if self.corruption is not None:
+            points = self.corruption.points(points, token, sweep, lidar2ego)
         return points
 
     def _load_points(self, record: FrameRecord, sample: Sample, rng: np.random.Generator) -> Tensor:
-        """Key frame plus sweeps in the key LiDAR frame, ``(x, y, z, intensity, time lag)``; returns the key points."""
-        path = self.root / record.lidar_path
+        """Key frame plus sweeps in the key LiDAR frame, ``(x, y, z, intensity, time lag)``; returns the key points.
+
+        Under ``lidar_delay`` the sweep ``k`` before the key frame stands in for it, in the key frame's place (the
+        model cannot tell), with the sweeps before it (at a scene's start, the oldest sweep there is). Under
+        ``no_lidar`` the cloud is empty."""
+        corruption = self.corruption
+        if corruption is not None and corruption.lidar_missing:
+            sample.points = torch.zeros((0, 5), dtype=torch.float32)
+            return sample.points
+        sweeps = record.sweeps
+        wanted = self.config.sweeps if corruption is None else corruption.sweeps(self.config.sweeps)
+        delay = 0 if corruption is None else min(corruption.lidar_delay, len(sweeps))
+        path, to_key, lag = self.root / record.lidar_path, np.eye(4), 0.0
+        if delay:
+            stand_in = sweeps[delay - 1]
+            path, to_key, lag = self.root / stand_in.path, np.linalg.inv(stand_in.sweep2lidar), stand_in.time_lag
         raw = read_points(path, record.token)
         if len(raw) == 0:
             # A LiDAR key frame always has returns; an empty file is a failed copy, and scoring it skews the metrics.
             raise SampleError(f"sample {record.token}: {path} is empty (0 points)")
-        key = self._degrade(sanitize_points(torch.from_numpy(raw.copy()), str(path)), rng)
+        key = self._degrade(sanitize_points(torch.from_numpy(raw.copy()), str(path)), rng, record.token, 0,
+                            record.lidar2ego)  # fmt: skip
         key[:, 4] = 0.0  # the ring column becomes the time lag
         clouds = [key]
-        for sweep in record.sweeps[: self.config.sweeps]:
+        for index, sweep in enumerate(sweeps[delay : delay + wanted], start=1):
             sweep_path = self.root / sweep.path
             raw = read_points(sweep_path, record.token)
             if len(raw) == 0:
                 # Sweeps only densify the key frame: an empty one leaves the frame usable, so it is named, not fatal.
                 warnings.warn(f"sample {record.token}: sweep {sweep_path} is empty (0 points)", stacklevel=2)
             points = sanitize_points(torch.from_numpy(raw.copy()), str(sweep_path))
-            points = self._degrade(points, rng)
-            transform = _matrix(sweep.sweep2lidar)
+            points = self._degrade(points, rng, record.token, index, record.lidar2ego)
+            transform = _matrix(to_key @ sweep.sweep2lidar)
             points[:, :3] = points[:, :3] @ transform[:3, :3].T + transform[:3, 3]
-            points[:, 4] = sweep.time_lag
+            points[:, 4] = sweep.time_lag - lag
             clouds.append(points)
         sample.points = augment_points(torch.cat(clouds), sample.bev_aug)
         return key

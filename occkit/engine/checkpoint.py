@@ -28,6 +28,7 @@ from occkit.zoo import config_class
 __all__ = [
     "FORMAT",
     "atomic_save",
+    "atomic_write_text",
     "save_checkpoint",
     "load_checkpoint",
     "latest_checkpoint",
@@ -80,7 +81,8 @@ def atomic_save(payload: Any, path: str | Path) -> Path:
     return path
 
 
-def _atomic_write_text(text: str, path: Path) -> None:
+def atomic_write_text(text: str, path: Path) -> None:
+    """Write ``text`` to ``path`` through a temporary file and a rename, like :func:`atomic_save`."""
     temporary = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     with open(temporary, "w") as handle:
         handle.write(text)
@@ -121,7 +123,7 @@ def save_checkpoint(folder: str | Path, payload: dict[str, Any], step: int, keep
     """Write ``step-XXXXXXXX.pt``, point ``last.json`` at it, then delete rolling checkpoints beyond ``keep_last``."""
     folder = Path(folder)
     path = atomic_save({"format": FORMAT, **payload}, folder / f"step-{step:08d}.pt")
-    _atomic_write_text(json.dumps({"checkpoint": path.name, "step": step}) + "\n", folder / "last.json")
+    atomic_write_text(json.dumps({"checkpoint": path.name, "step": step}) + "\n", folder / "last.json")
     rolling = sorted(folder.glob("step-*.pt"))
     for old in rolling[:-keep_last]:
         old.unlink(missing_ok=True)

@@ -98,7 +98,8 @@ def evaluate_model(
     Args:
         model: a zoo model; put in eval mode here.
         dataset: the split, with ``occupancy=True`` and no augmentation; a temporal model streams it scene by scene
-            (:func:`stream_memory`).
+            (:func:`stream_memory`), and under the dataset's ``history_dropped`` corruption its memory forgets the
+            frames the corruption drops.
         predictions: folder to also write ``<token>.npz`` predictions into.
         ray_origins: token -> origins; when given, RayIoU is computed too (no mask, as SparseOcc); Occ3D only.
         progress: called with the number of samples after each batch (skipped ones included).
@@ -123,7 +124,10 @@ def evaluate_model(
     share = len(loader.sampler)
     for index, batch in enumerate(loader):
         if len(batch) > 0:  # else every frame of the batch failed to load (on_error="skip")
+            before = memory.state_dict() if memory is not None and dataset.corruption is not None else None
             semantics = _predict(model, batch.to(device), memory).semantics.cpu().numpy()
+            if before is not None and dataset.corruption.forget(batch.tokens[0]):
+                memory.load_state_dict(before)  # the frame is lost to the frames after it (history_dropped)
             labels = batch.voxel_semantics.numpy()
             masks = {name: None if value is None else value.numpy()
                      for name, value in (("mask_camera", batch.mask_camera), ("mask_lidar", batch.mask_lidar))}
