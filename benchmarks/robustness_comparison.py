@@ -1,6 +1,7 @@
 """Fusion against each sensor alone under corruptions: the worked comparison of docs/robustness.md.
 
     python benchmarks/robustness_comparison.py [--data data/study-world] [--suite default] [--runs runs/study]
+    python benchmarks/robustness_comparison.py --sheet docs/images/corruptions.jpg
 
 Scores the seed-0 checkpoints of three arms of ``benchmarks/study.py`` (``daocc_tiny``: camera + LiDAR fusion, and
 the same network with its LiDAR branch alone and with its camera branch alone; one recipe, one budget, one world)
@@ -18,6 +19,7 @@ import sys
 import time
 from pathlib import Path
 
+from matplotlib.lines import Line2D
 from tqdm import tqdm
 
 from occkit.data.corruptions import CORRUPTIONS
@@ -122,9 +124,39 @@ def plot_severity(reports: dict[str, dict], path: Path) -> Path:
         axes.set_xticks(range(4), ["clean", "1", "2", "3"], fontsize=7)
         axes.tick_params(labelsize=7)
         axes.set_ylim(bottom=0)
-        if index == 0:
-            axes.legend(fontsize=6)
+        if index % columns == 0:
+            axes.set_ylabel("mIoU (%)", fontsize=8)
+    handles = [Line2D([], [], color=f"C{i}", marker="o", markersize=3, label=MODELS[n]) for i, n in enumerate(names)]
+    figure.legend(handles=handles, loc="outside upper center", ncols=len(names), fontsize=8)
     return save_figure(figure, path)
+
+
+def corruption_sheet(data: Path, path: Path, camera: str = "CAM_FRONT") -> Path:
+    """One camera image of the first held-out frame under every image corruption and level, clean first."""
+    from PIL import Image, ImageDraw
+
+    from occkit.data.dataset import DatasetConfig, OccupancyDataset
+
+    dataset = OccupancyDataset(DatasetConfig(root=str(data), split="val", sweeps=-1, occupancy=False, boxes=False))
+    record = dataset.records[len(dataset.records) // 2]
+    clean = dataset._read_camera(record, camera, record.token)
+    width, height = clean.size
+    names = [name for name, c in CORRUPTIONS.items() if c.family == "images"]
+    sheet = Image.new("RGB", (3 * width, (1 + len(names)) * height), "white")
+    sheet.paste(clean, (0, 0))
+    draw = ImageDraw.Draw(sheet)
+    draw.text((6, 4), "clean", fill="yellow")
+    for row, name in enumerate(names, start=1):
+        for severity in CORRUPTIONS[name].severities:
+            corrupted = OccupancyDataset(DatasetConfig(root=str(data), split="val", sweeps=-1, occupancy=False,
+                                                       boxes=False, corruption=name, corruption_severity=severity))
+            sheet.paste(corrupted._read_camera(record, camera, record.token), ((severity - 1) * width, row * height))
+            draw.text(((severity - 1) * width + 6, row * height + 4),
+                      f"{name} {CORRUPTIONS[name].labels[severity - 1]}", fill="yellow")  # fmt: skip
+    path.parent.mkdir(parents=True, exist_ok=True)
+    sheet = sheet.resize((sheet.width * 2 // 3, sheet.height * 2 // 3), Image.Resampling.LANCZOS)
+    sheet.save(path, quality=88)  # a .jpg: a PNG of nine rows of noise weighs megabytes
+    return path
 
 
 def main() -> None:
@@ -135,7 +167,12 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=Path("runs/robustness"))
     parser.add_argument("--docs", type=Path, default=Path("docs/results/robustness"))
     parser.add_argument("--workers", type=int, default=1)
+    parser.add_argument("--sheet", type=Path, default=None, metavar="PNG",
+                        help="only draw the image corruptions of one camera image into PNG")
     args = parser.parse_args()
+    if args.sheet is not None:
+        print(f"wrote {corruption_sheet(args.data, args.sheet)}")
+        return
     reports: dict[str, dict] = {}
     baseline = None
     for name in MODELS:

@@ -158,6 +158,7 @@ def test_point_dropout_fov_sweeps_and_no_lidar(world):
     assert (lags > 0).any()
     half = _dataset(world, "point_dropout", 2)[1]
     assert abs(len(half.points) - len(clean.points) / 2) <= 10  # round(0.5 * P) of every sweep kept
+    assert len(torch.unique(_dataset(world, "fewer_sweeps", 1)[2].points[:, 4])) == 1 + 4  # 9 sweeps -> 4
     key_only = _dataset(world, "fewer_sweeps", 3)[1]
     assert len(key_only.points) == int((lags == 0).sum()) and (key_only.points[:, 4] == 0).all()
     # 60 degrees around the ego's heading, each sweep in its own frame (the key frame's here).
@@ -296,9 +297,9 @@ def test_robustness_writes_its_report_and_resumes_from_the_finished_cases(world,
     lines: list[str] = []
     first = run_robustness(checkpoint, out, suite=suite, rayiou=False, workers=0, log=lines.append)
     assert [c["name"] for c in first["corruptions"]] == ["missing_camera", "lidar_beams"]
-    assert first["not_applicable"] == [{"name": "history_dropped-1", "reason": "needs a model that takes temporal"},
-                                       {"name": "history_dropped-2", "reason": "needs a model that takes temporal"},
-                                       {"name": "history_dropped-3", "reason": "needs a model that takes temporal"}]
+    assert first["not_applicable"] == [{"name": "history_dropped", "levels": [1, 2, 3],
+                                        "reason": "needs a model that takes temporal"}]  # fmt: skip
+    assert "not applicable (needs a model that takes temporal): history_dropped" in lines
     assert first["frames"] == 3 and not any(level["cached"] for c in first["corruptions"] for level in c["levels"])
     for name in ("robustness.json", "robustness.md", "resilience.png", "severity.png"):
         assert (out / name).is_file(), name

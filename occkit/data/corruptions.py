@@ -18,6 +18,7 @@ corrupted sample is the same in every run, process and worker, and reproducible 
 
 from __future__ import annotations
 
+import math
 import os
 import zlib
 from collections.abc import Sequence
@@ -82,7 +83,9 @@ CORRUPTIONS: dict[str, Corruption] = {
                    ({"ceiling": 0.6, "shot": 0.05}, {"ceiling": 0.4, "shot": 0.1}, {"ceiling": 0.2, "shot": 0.2}),
                    ("ceiling 0.6", "ceiling 0.4", "ceiling 0.2"), ("cameras",)),
         _image("fog", "fog: haze and blurred discs over the image", "fog", (0.3, 0.6, 0.9), "density {}"),
-        _image("snow", "snow: the brightest areas turned to snow cover", "snow", (0.1, 0.3, 0.5), "cover {}"),
+        Corruption("snow", "images", "snow: the brightest areas turned to snow cover",
+                   tuple({"snow": v, "method": "bleach"} for v in (0.1, 0.3, 0.5)),
+                   ("cover 0.1", "cover 0.3", "cover 0.5"), ("cameras",)),
         _image("motion_blur", "motion blur along a random direction", "kernel", (7, 15, 23), "{} px"),
         _image("gaussian_noise", "sensor noise, standard deviation as a fraction of full scale", "std",
                (0.08, 0.18, 0.38), "std {}"),
@@ -93,8 +96,8 @@ CORRUPTIONS: dict[str, Corruption] = {
                    ("lidar",)),
         Corruption("point_dropout", "lidar", "a fraction of the points of every sweep lost at random",
                    ({"fraction": 0.25}, {"fraction": 0.5}, {"fraction": 0.75}), ("25%", "50%", "75%"), ("lidar",)),
-        Corruption("fewer_sweeps", "lidar", "fewer earlier sweeps accumulated (nuScenes models take 9)",
-                   ({"sweeps": 4}, {"sweeps": 2}, {"sweeps": 0}), ("4 sweeps", "2 sweeps", "key frame only"),
+        Corruption("fewer_sweeps", "lidar", "a share of the model's earlier sweeps accumulated (rounded down)",
+                   ({"keep": 0.5}, {"keep": 0.25}, {"keep": 0.0}), ("1/2 of them", "1/4 of them", "key frame only"),
                    ("lidar",)),
         Corruption("lidar_fov", "lidar", "the LiDAR sees only a sector around the ego's heading",
                    ({"degrees": 180}, {"degrees": 120}, {"degrees": 60}), ("180°", "120°", "60°"), ("lidar",)),
@@ -138,7 +141,7 @@ def _image_transform(name: str, params: dict[str, Any], seed: int):
     elif name == "fog":
         transforms = [A.RandomFog(fog_coef_range=(params["fog"],) * 2, alpha_coef=0.08, p=1.0)]
     elif name == "snow":
-        transforms = [A.RandomSnow(snow_point_range=(params["snow"],) * 2, method="texture", p=1.0)]
+        transforms = [A.RandomSnow(snow_point_range=(params["snow"],) * 2, method=params["method"], p=1.0)]
     elif name == "motion_blur":
         transforms = [A.MotionBlur(blur_limit=(params["kernel"],) * 2, p=1.0)]
     elif name == "gaussian_noise":
@@ -227,8 +230,8 @@ class SampleCorruption:
         return self.params["sweeps"] if self.name == "lidar_delay" else 0
 
     def sweeps(self, sweeps: int) -> int:
-        """The earlier sweeps loaded when the model takes ``sweeps``."""
-        return min(sweeps, self.params["sweeps"]) if self.name == "fewer_sweeps" else sweeps
+        """The earlier sweeps loaded when the model takes ``sweeps`` (``fewer_sweeps``: 9 -> 4, 2, 0)."""
+        return math.floor(sweeps * self.params["keep"]) if self.name == "fewer_sweeps" else sweeps
 
     def points(self, points: Tensor, token: str, sweep: int, lidar2ego: np.ndarray) -> Tensor:
         """Raw ``(P, 5)`` rows of one sweep (``x, y, z, intensity, ring`` in its LiDAR frame; ``sweep`` 0 is the key

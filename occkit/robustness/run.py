@@ -115,7 +115,12 @@ def run_robustness(
     clean_data = evaluation_dataset(experiment, data, split or experiment.train.val_split)
     config = dataclasses.replace(clean_data.config, seed=seed)
     inputs = model_inputs(bool(config.cameras), config.sweeps >= 0, getattr(model, "temporal", None) is not None)
-    skipped = [{"name": c.key, "reason": reason} for c in cases if (reason := not_applicable(c, inputs))]
+    skipped: dict[str, dict] = {}  # corruption -> its levels that do not apply, and why
+    for case in cases:
+        reason = not_applicable(case, inputs)
+        if reason is not None:
+            skipped.setdefault(case.corruption, {"name": case.corruption, "levels": [], "reason": reason})
+            skipped[case.corruption]["levels"].append(case.severity)
     cases = [CLEAN, *(c for c in cases if not_applicable(c, inputs) is None)]
     origins = dataset_ray_origins(clean_data) if rayiou and clean_data.space.rayiou else None
     root = Path(config.root).resolve()
@@ -133,8 +138,9 @@ def run_robustness(
             log(f"{case.label}: {_scores(cached['result'])} (cached, {cached['result']['seconds']:.0f} s before)")
         else:
             todo.append((case, fingerprint))
-    if skipped:
-        log("not applicable: " + ", ".join(f"{item['name']} ({item['reason']})" for item in skipped))
+    for reason in dict.fromkeys(item["reason"] for item in skipped.values()):
+        log(f"not applicable ({reason}): " + ", ".join(item["name"] for item in skipped.values()
+                                                       if item["reason"] == reason))  # fmt: skip
     total, done = len(todo) * len(clean_data), 0
     for case, fingerprint in todo:
         dataset = OccupancyDataset(dataclasses.replace(config, corruption=case.corruption,
@@ -155,7 +161,7 @@ def run_robustness(
         results[case] = {**result, "cached": False}
         log(f"{case.label}: {_scores(result)} ({result['seconds']:.0f} s)")
 
-    report = _report(results, skipped, baseline_report, {
+    report = _report(results, list(skipped.values()), baseline_report, {
         "checkpoint": str(checkpoint), "model": experiment.architecture, "data": str(config.root),
         "split": config.split, "frames": len(clean_data), "suite": suite, "seed": seed,
         "inputs": sorted(inputs), "baseline": None if baseline is None else str(baseline),
