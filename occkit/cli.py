@@ -823,7 +823,7 @@ def _run_robustness(args: argparse.Namespace) -> int:
                                 rayiou=not args.no_rayiou, seed=args.seed, log=tqdm.write, progress=progress)
     print((args.out / "robustness.md").read_text(), end="")
     written = [name for name in ("robustness.json", "robustness.md", "resilience.png", "severity.png")
-               if (args.out / name).is_file()]  # severity.png: only with a corruption of several severities
+               if (args.out / name).is_file()]  # severity.png: only with a corruption of severities
     print(f"wrote {', '.join(written)} to {args.out} ({report['seconds']:.0f} s, {report['seconds_computed']:.0f} s "
           "of it evaluating)")
     return 0

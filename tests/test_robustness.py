@@ -331,11 +331,11 @@ def test_robustness_writes_its_report_and_resumes_from_the_finished_cases(world,
 
     # The command: one line per case, the table, the files; a bad suite is a usage error.
     assert main(["robustness", "--ckpt", str(checkpoint), "--out", str(tmp_path / "cli"), "--suite",
-                 "no_lidar", "--no-rayiou", "--workers", "0", "--device", "cpu"]) == 0  # fmt: skip
+                 "missing_camera:CAM_BACK", "--no-rayiou", "--workers", "0", "--device", "cpu"]) == 0  # fmt: skip
     printed = capsys.readouterr()
-    assert "no_lidar no points: mIoU" in printed.out and "| `no_lidar` | lidar |" in printed.out
-    assert json.loads((tmp_path / "cli" / "robustness.json").read_text())["suite"] == "no_lidar"
-    assert not (tmp_path / "cli" / "severity.png").exists()
+    assert "missing_camera CAM_BACK: mIoU" in printed.out and "| `missing_camera` | cameras |" in printed.out
+    assert json.loads((tmp_path / "cli" / "robustness.json").read_text())["suite"] == "missing_camera:CAM_BACK"
+    assert not (tmp_path / "cli" / "severity.png").exists()  # the cameras are variants, not severities
     assert main(["robustness", "--ckpt", str(checkpoint), "--out", str(tmp_path / "x"), "--suite", "rain"]) == 2
     assert "'rain' is neither a suite" in capsys.readouterr().err
     assert main(["robustness", "--list"]) == 0

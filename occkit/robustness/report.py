@@ -148,22 +148,22 @@ def plot_resilience(report: Mapping, path: Path) -> Path:
 
 
 def plot_severity(report: Mapping, path: Path) -> Path | None:
-    """mIoU against level for the corruptions whose levels are severities, one panel per family; the clean score
-    dashed. None (no file) when no such corruption was run."""
-    ordered = [c for c in report["corruptions"] if CORRUPTIONS[c["name"]].ordered and len(c["levels"]) > 1]
+    """mIoU from the clean data (severity 0) through each level run, for the corruptions whose levels are
+    severities, one panel per family. None (no file) when no such corruption was run."""
+    ordered = [c for c in report["corruptions"] if CORRUPTIONS[c["name"]].ordered]
     families = [f for f in _FAMILY_COLORS if any(c["family"] == f for c in ordered)]
     if not families:
         return None
     figure = new_figure(4.0 * len(families), 3.6, layout="constrained")
+    clean = 100 * report["clean"]["miou"]
     for index, family in enumerate(families):
         axes = figure.add_subplot(1, len(families), index + 1)
         for c in (c for c in ordered if c["family"] == family):
-            axes.plot([lv["severity"] for lv in c["levels"]], [100 * lv["miou"] for lv in c["levels"]], marker="o",
-                      label=c["name"])  # fmt: skip
-        axes.axhline(100 * report["clean"]["miou"], color="black", linewidth=0.8, linestyle="--", label="clean")
+            axes.plot([0] + [lv["severity"] for lv in c["levels"]], [clean] + [100 * lv["miou"] for lv in c["levels"]],
+                      marker="o", label=c["name"])  # fmt: skip
         axes.set_title(family)
-        axes.set_xlabel("severity")
-        axes.set_xticks([1, 2, 3])
+        axes.set_xlabel("severity (0: clean)")
+        axes.set_xticks([0, 1, 2, 3])
         axes.set_ylabel("mIoU (%)")
         axes.set_ylim(bottom=0)
         axes.legend(fontsize=7)
