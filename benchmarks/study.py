@@ -38,6 +38,7 @@ from pathlib import Path
 import torch
 
 from occkit import zoo
+from occkit.engine.checkpoint import latest_checkpoint
 from occkit.engine.evaluate import dataset_ray_origins, evaluate_model, evaluation_dataset, load_trained
 from occkit.engine.train import train
 from occkit.experiment import Experiment, replace_train
@@ -207,9 +208,16 @@ def run_arm(name: str, seed: int, args: argparse.Namespace) -> dict:
                                seed=seed)  # fmt: skip
     folder = args.runs / _slug(name) / f"seed-{seed}"
     print(f"[study] {name}, seed {seed}: training {args.steps} steps into {folder}", flush=True)
+    earlier = latest_checkpoint(folder) if folder.is_dir() else None
+    start_step = int(json.loads((folder / "last.json").read_text())["step"]) if earlier is not None else 0
     wall, cpu = time.perf_counter(), _cpu_seconds()
     run = train(experiment, folder, resume="auto", progress=args.progress)
     train_wall, train_cpu = time.perf_counter() - wall, _cpu_seconds() - cpu
+    if 0 < start_step < run.steps:
+        # Resumed (an earlier process trained the first steps and was stopped): the times of the steps this process
+        # took, scaled to the whole run, and marked as estimated.
+        scale = run.steps / (run.steps - start_step)
+        train_wall, train_cpu = train_wall * scale, train_cpu * scale
     model, experiment = load_trained(sorted(folder.glob("step-*.pt"))[-1])
     dataset = evaluation_dataset(experiment, args.data, "val")
     torch.set_flush_denormal(True)
@@ -218,7 +226,8 @@ def run_arm(name: str, seed: int, args: argparse.Namespace) -> dict:
     result = {
         "arm": name, "entry": arm.entry, "description": arm.description, "seed": seed, "steps": run.steps,
         **{key: scores[key] for key in METRICS}, "per_class_iou": scores["per_class_iou"], "frames": scores["frames"],
-        "train_seconds": train_wall, "train_cpu_seconds": train_cpu, "eval_seconds": time.perf_counter() - wall,
+        "train_seconds": train_wall, "train_cpu_seconds": train_cpu, "resumed_from_step": start_step,
+        "eval_seconds": time.perf_counter() - wall,
         "eval_cpu_seconds": _cpu_seconds() - cpu, "params": sum(p.numel() for p in model.parameters()),
         "threads": torch.get_num_threads(), "device": _device_name(), "world": {**WORLD, "data": str(args.data)},
     }  # fmt: skip

@@ -122,8 +122,8 @@ class DatasetConfig:
     point_dropout: float = 0.0
     """Robustness evaluation: fraction of LiDAR points dropped at random, per sweep."""
     corruption: str | None = None
-    """Robustness evaluation: a corruption of :data:`~occkit.data.corruptions.CORRUPTIONS` applied to every sample
-    (``occkit robustness``), after the settings above; None for none."""
+    """Robustness evaluation: the name of a corruption (``occkit robustness --list``) applied to every sample, after
+    the settings above; None for none."""
     corruption_severity: int = 1
     """The corruption's level, 1 to its number of levels."""
     depth_downsample: int = 0
