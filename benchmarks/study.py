@@ -38,7 +38,6 @@ from pathlib import Path
 import torch
 
 from occkit import zoo
-from occkit.engine.checkpoint import latest_checkpoint
 from occkit.engine.evaluate import dataset_ray_origins, evaluate_model, evaluation_dataset, load_trained
 from occkit.engine.train import train
 from occkit.experiment import Experiment, replace_train
@@ -208,14 +207,14 @@ def run_arm(name: str, seed: int, args: argparse.Namespace) -> dict:
                                seed=seed)  # fmt: skip
     folder = args.runs / _slug(name) / f"seed-{seed}"
     print(f"[study] {name}, seed {seed}: training {args.steps} steps into {folder}", flush=True)
-    earlier = latest_checkpoint(folder) if folder.is_dir() else None
-    start_step = int(json.loads((folder / "last.json").read_text())["step"]) if earlier is not None else 0
+    pointer = folder / "last.json"  # the checkpoint a resumed run starts from
+    start_step = int(json.loads(pointer.read_text())["step"]) if pointer.is_file() else 0
     wall, cpu = time.perf_counter(), _cpu_seconds()
     run = train(experiment, folder, resume="auto", progress=args.progress)
     train_wall, train_cpu = time.perf_counter() - wall, _cpu_seconds() - cpu
     if 0 < start_step < run.steps:
         # Resumed (an earlier process trained the first steps and was stopped): the times of the steps this process
-        # took, scaled to the whole run, and marked as estimated.
+        # took, scaled to the whole run (`resumed_from_step` in the result says so).
         scale = run.steps / (run.steps - start_step)
         train_wall, train_cpu = train_wall * scale, train_cpu * scale
     model, experiment = load_trained(sorted(folder.glob("step-*.pt"))[-1])

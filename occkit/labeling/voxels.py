@@ -18,7 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from occkit.geometry.grid import VoxelGrid
-from occkit.labeling.aggregate import AggregateConfig, SceneCloud, points_in_boxes
+from occkit.labeling.aggregate import AggregateConfig, SceneCloud, object_membership, points_in_boxes
 from occkit.labeling.sources import Boxes
 
 __all__ = ["DENSIFY_METHODS", "DensifyConfig", "key_frame_points", "vote", "require_open3d", "densify_poisson"]
@@ -65,15 +65,16 @@ def key_frame_points(
     global2frame = np.linalg.inv(frame2global)
     lower = np.asarray(grid.lower) - margin
     upper = np.asarray(grid.upper) + margin
-    static = cloud.static_xyz.astype(np.float64) + cloud.origin
-    # A cheap cut by distance before the full transform: the grid's circumscribed radius around the frame's origin.
+    # A cheap cut by distance, on the stored float32 offsets from the scene origin, before anything is converted or
+    # transformed: the grid's circumscribed radius around the frame's origin.
     radius = np.linalg.norm(np.maximum(np.abs(lower[:2]), np.abs(upper[:2])))
-    near = np.abs(static[:, :2] - frame2global[:2, 3]).max(axis=1) <= radius
-    static, static_label = static[near], cloud.static_label[near]
+    centre = (frame2global[:2, 3] - cloud.origin[:2]).astype(np.float32)
+    near = np.abs(cloud.static_xyz[:, :2] - centre).max(axis=1) <= radius
+    static = cloud.static_xyz[near].astype(np.float64) + cloud.origin
+    static_label = cloud.static_label[near]
+    # Static points inside a box at this instant that stand above its ground belong to the object, not the scene.
     owner, local = points_in_boxes(static, boxes, config.box_scale)
-    bottom = -boxes.size[owner[owner >= 0], 2] / 2
-    stale = np.zeros(len(static), bool)
-    stale[owner >= 0] = local[owner >= 0, 2] > bottom + config.ground_clearance
+    stale = object_membership(owner, local, boxes, None, config)
     xyz, labels = [static[~stale]], [static_label[~stale]]
     box2global = boxes.box2global()
     half = boxes.size[:, [1, 0, 2]] * (config.box_scale / 2)

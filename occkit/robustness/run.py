@@ -121,7 +121,7 @@ def run_robustness(
         if reason is not None:
             skipped.setdefault(case.corruption, {"name": case.corruption, "levels": [], "reason": reason})
             skipped[case.corruption]["levels"].append(case.severity)
-    cases = [CLEAN, *(c for c in cases if not_applicable(c, inputs) is None)]
+    cases = [CLEAN, *(c for c in cases if c.corruption not in skipped)]  # a corruption applies at every level or none
     origins = dataset_ray_origins(clean_data) if rayiou and clean_data.space.rayiou else None
     root = Path(config.root).resolve()
     common = {"checkpoint_sha256": _sha256(Path(checkpoint)), "data": str(root), "version": config.version,
