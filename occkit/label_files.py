@@ -33,12 +33,23 @@ def save_npz(path: str | Path, compressed: bool = True, **arrays: np.ndarray) ->
 
 
 def write_occ3d_labels(
-    path: str | Path, semantics: np.ndarray, mask_lidar: np.ndarray, mask_camera: np.ndarray
+    path: str | Path,
+    semantics: np.ndarray,
+    mask_lidar: np.ndarray,
+    mask_camera: np.ndarray,
+    flow: np.ndarray | None = None,
 ) -> None:
     """Write an Occ3D ``labels.npz`` as the benchmark ships it: the three arrays as uint8 ``(X, Y, Z)``, byte for byte
-    reproducible."""
-    save_npz(path, semantics=np.asarray(semantics, np.uint8), mask_lidar=np.asarray(mask_lidar, np.uint8),
-             mask_camera=np.asarray(mask_camera, np.uint8))  # fmt: skip
+    reproducible; with ``flow``, also the occupancy flow as the CVPR 2024 challenge's OpenOcc v2 files carry it
+    (key ``flow``, float32 ``(X, Y, Z, 2)`` ``vx, vy`` in m/s in the labels' frame)."""
+    arrays = {"semantics": np.asarray(semantics, np.uint8), "mask_lidar": np.asarray(mask_lidar, np.uint8),
+              "mask_camera": np.asarray(mask_camera, np.uint8)}  # fmt: skip
+    if flow is not None:
+        flow = np.asarray(flow, np.float32)
+        if flow.shape != (*arrays["semantics"].shape, 2):
+            raise ValueError(f"{path}: flow must have shape {(*arrays['semantics'].shape, 2)}, got {flow.shape}")
+        arrays["flow"] = flow
+    save_npz(path, **arrays)
 
 
 def write_surroundocc_labels(path: str | Path, rows: np.ndarray) -> None:

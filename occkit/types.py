@@ -65,6 +65,9 @@ class Sample:
     """``(X, Y, Z)`` bool, voxels observed by the cameras."""
     mask_lidar: Tensor | None = None
     """``(X, Y, Z)`` bool, voxels observed by the LiDAR."""
+    voxel_flow: Tensor | None = None
+    """``(X, Y, Z, 2)`` float32 occupancy flow ``vx, vy`` (m/s) in the augmented ego frame, on request
+    (``DatasetConfig.flow``): each voxel's object velocity, zero on static and free voxels."""
     depth_maps: Tensor | None = None
     """``(N, h, w)`` float32 LiDAR depth per feature cell (0 = none), on request."""
     height_maps: Tensor | None = None
@@ -126,6 +129,8 @@ class Batch:
     """``(B, X, Y, Z)`` bool."""
     mask_lidar: Tensor | None = None
     """``(B, X, Y, Z)`` bool."""
+    voxel_flow: Tensor | None = None
+    """``(B, X, Y, Z, 2)`` float32 m/s."""
     depth_maps: Tensor | None = None
     """``(B, N, h, w)``."""
     height_maps: Tensor | None = None
@@ -174,6 +179,8 @@ class ModelOutput:
     """``(B, N, D, h, w)`` depth distributions of LSS models."""
     height: Tensor | None = None
     """``(B, N, Z, h, w)`` height distributions of DA-Occ."""
+    flow: Tensor | None = None
+    """``(B, X, Y, Z, 2)`` predicted occupancy flow ``vx, vy`` (m/s, ego frame) of models with a flow head."""
     history_state: Tensor | None = None
     """``(B, C, X, Y)`` of temporal models: what a stream keeps of this frame for the next ones
     (:class:`~occkit.models.temporal.StreamMemory`)."""
@@ -185,6 +192,8 @@ class OccPrediction:
 
     semantics: Tensor
     """``(B, X, Y, Z)`` uint8 class ids (17 = free for Occ3D)."""
+    flow: Tensor | None = None
+    """``(B, X, Y, Z, 2)`` float32 occupancy flow (m/s, ego frame) of models with a flow head."""
     boxes: list[Tensor] | None = None
     """Optional ``B`` tensors ``(M_b, 9)`` in the LiDAR frame."""
     box_scores: list[Tensor] | None = None

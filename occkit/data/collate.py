@@ -22,6 +22,7 @@ _STACKED = (
     "voxel_semantics",
     "mask_camera",
     "mask_lidar",
+    "voxel_flow",
     "depth_maps",
     "height_maps",
     "history_images",

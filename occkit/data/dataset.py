@@ -45,6 +45,7 @@ from occkit.data.transforms import (
     ImageAugConfig,
     ImageAugParams,
     augment_boxes,
+    augment_flow,
     augment_image,
     augment_occupancy,
     augment_points,
@@ -97,6 +98,9 @@ class DatasetConfig:
     the one BEV augmentation of the sample moves the whole sequence (``Sample.history_*``)."""
     occupancy: bool = True
     """Load the occupancy labels (and, for Occ3D, the visibility masks)."""
+    flow: bool = False
+    """Also load the occupancy flow (``Sample.voxel_flow``): the ``flow`` array of each Occ3D ``labels.npz``, as the
+    CVPR 2024 challenge's OpenOcc v2 files carry it (the synthetic world writes it). Needs ``occupancy``."""
     label_space: str = "occ3d"
     """Which benchmark's ground truth: ``occ3d`` or ``surroundocc`` (grid, frame, classes, files; see
     :mod:`occkit.label_space`). It must be the one the model's occupancy head predicts."""
@@ -135,6 +139,8 @@ class DatasetConfig:
     """Seed of the augmentation draws."""
 
     def __post_init__(self) -> None:
+        if self.flow and not self.occupancy:
+            raise ValueError("flow = true needs occupancy = true: the flow is read from the occupancy label files")
         if self.depth_downsample and self.sweeps < 0:
             raise ValueError(f"depth_downsample = {self.depth_downsample} needs the LiDAR key frame, but sweeps = "
                              f"{self.sweeps} loads no LiDAR: set sweeps to 0 (the key frame) or more")
@@ -526,12 +532,16 @@ class OccupancyDataset(torch.utils.data.Dataset):
         """Labels (and masks) moved with ``label_aug``, the BEV augmentation in the labels' frame."""
         space = self.space
         try:
-            labels = read_labels(space, self.label_path(record), record.token)
+            labels = read_labels(space, self.label_path(record), record.token, flow=self.config.flow)
         except LabelError as error:  # one error type for every file of a sample (its message names both)
             raise SampleError(str(error)) from error
         sample.voxel_semantics = torch.from_numpy(
             augment_occupancy(labels.semantics, label_aug, space.grid, space.ignore_index, empty=space.free_index)
         )
+        if labels.flow is not None:
+            sample.voxel_flow = torch.from_numpy(
+                augment_flow(labels.flow, labels.semantics, label_aug, space.grid, space.ignore_index, space.free_index)
+            )
         for name in ("mask_camera", "mask_lidar"):
             mask = getattr(labels, name)
             if mask is not None:

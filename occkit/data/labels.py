@@ -36,34 +36,44 @@ class OccupancyLabels:
         semantics: ``(X, Y, Z)`` uint8 class ids (255 = ignore).
         mask_camera: ``(X, Y, Z)`` bool, or None when the format has no visibility masks.
         mask_lidar: ``(X, Y, Z)`` bool, or None.
+        flow: ``(X, Y, Z, 2)`` float32 occupancy flow ``vx, vy`` (m/s, labels' frame), or None when not asked for.
     """
 
     semantics: np.ndarray
     mask_camera: np.ndarray | None = None
     mask_lidar: np.ndarray | None = None
+    flow: np.ndarray | None = None
 
 
 def _where(path: Path, token: str | None) -> str:
     return f"sample {token}: {path}" if token else str(path)
 
 
-def read_occ3d_labels(path: str | Path, token: str | None = None, grid: VoxelGrid = OCC3D_GRID) -> OccupancyLabels:
+def read_occ3d_labels(
+    path: str | Path, token: str | None = None, grid: VoxelGrid = OCC3D_GRID, flow: bool = False
+) -> OccupancyLabels:
     """Read an Occ3D ``labels.npz`` (``semantics``, ``mask_lidar``, ``mask_camera``: uint8 ``(X, Y, Z)``).
 
     Masks are returned as bool: the official metric indexes with them, and a uint8 mask would index as integers.
+    With ``flow``, the file must also carry the occupancy flow as OpenOcc v2's ``labels.npz`` does (key ``flow``,
+    float ``(X, Y, Z, 2)``, m/s); it is returned as float32.
     """
     path = Path(path)
     where = _where(path, token)
+    wanted = ("semantics", "mask_lidar", "mask_camera") + (("flow",) if flow else ())
     try:
         with np.load(path, allow_pickle=False) as archive:
-            arrays = {key: archive[key] for key in archive.files}
+            missing = [key for key in wanted if key not in archive.files]
+            if missing:
+                hint = " (occkit sim writes label files with flow)" if missing == ["flow"] else ""
+                raise LabelError(
+                    f"{where}: has no {', '.join(missing)} (keys: {', '.join(archive.files) or 'none'}){hint}"
+                )
+            arrays = {key: archive[key] for key in wanted}
     except FileNotFoundError:
         raise LabelError(f"{where}: label file not found") from None
     except (OSError, ValueError, zipfile.BadZipFile, EOFError) as error:
         raise LabelError(f"{where}: cannot read labels ({error})") from error
-    missing = [key for key in ("semantics", "mask_lidar", "mask_camera") if key not in arrays]
-    if missing:
-        raise LabelError(f"{where}: has no {', '.join(missing)} (keys: {', '.join(arrays) or 'none'})")
     for key in ("semantics", "mask_lidar", "mask_camera"):
         array = arrays[key]
         if array.shape != grid.shape:
@@ -80,7 +90,20 @@ def read_occ3d_labels(path: str | Path, token: str | None = None, grid: VoxelGri
         raise LabelError(
             f"{where}: semantics holds class ids {sorted(np.unique(semantics[bad]).tolist())} beyond 0..{last}"
         )
-    return OccupancyLabels(semantics, arrays["mask_camera"].astype(bool), arrays["mask_lidar"].astype(bool))
+    return OccupancyLabels(semantics, arrays["mask_camera"].astype(bool), arrays["mask_lidar"].astype(bool),
+                           _check_flow(arrays["flow"], where, grid) if flow else None)  # fmt: skip
+
+
+def _check_flow(flow: np.ndarray, where: str, grid: VoxelGrid) -> np.ndarray:
+    """``flow`` as float32 after checking its shape, dtype and values."""
+    if flow.shape != (*grid.shape, 2):
+        raise LabelError(f"{where}: flow has shape {flow.shape} but expected {(*grid.shape, 2)}")
+    if flow.dtype.kind != "f":
+        raise LabelError(f"{where}: flow has dtype {flow.dtype} but expected a float type (m/s)")
+    flow = flow.astype(np.float32, copy=False)
+    if not np.isfinite(flow).all():
+        raise LabelError(f"{where}: flow holds {int((~np.isfinite(flow)).any(-1).sum())} voxels that are not finite")
+    return flow
 
 
 def read_surroundocc_labels(
@@ -132,9 +155,12 @@ def label_file(space: LabelSpace, folder: str | Path, scene: str, token: str, li
                       str(folder))  # fmt: skip
 
 
-def read_labels(space: LabelSpace, path: str | Path, token: str | None = None) -> OccupancyLabels:
-    """Read one ground-truth file of ``space`` with its reader (``semantics`` in the space's class ids)."""
+def read_labels(space: LabelSpace, path: str | Path, token: str | None = None, flow: bool = False) -> OccupancyLabels:
+    """Read one ground-truth file of ``space`` with its reader (``semantics`` in the space's class ids); ``flow``
+    reads the occupancy flow too, which only Occ3D-layout files carry."""
     if space.name == "surroundocc":
+        if flow:
+            raise LabelError(f"{path}: SurroundOcc label files carry no occupancy flow; flow needs occ3d labels")
         return read_surroundocc_labels(path, token, space.grid)
-    return read_occ3d_labels(path, token, space.grid)
+    return read_occ3d_labels(path, token, space.grid, flow)
 

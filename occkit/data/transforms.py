@@ -39,6 +39,7 @@ __all__ = [
     "augment_points",
     "augment_boxes",
     "augment_occupancy",
+    "augment_flow",
     "drop_cameras",
     "drop_lidar_beams",
     "drop_points",
@@ -359,6 +360,56 @@ def augment_occupancy(
 
 
 # --------------------------------------------------------------------------------------------- sensor failures
+def augment_flow(
+    flow: np.ndarray, semantics: np.ndarray, occ_aug: Tensor, grid: VoxelGrid, fill: int, empty: int
+) -> np.ndarray:
+    """Move an occupancy flow volume with the augmentation of its grid's frame: positions as the labels, vectors
+    with the augmentation's linear part.
+
+    Each output voxel takes the flow of the input voxel its label came from (:func:`augment_occupancy`'s choice on
+    ``semantics``; zero where that lies outside the grid), then the vector turns with ``occ_aug``'s upper-left
+    ``2 x 2`` block: a flip of x negates ``vx``, a rotation turns the vector, a scale stretches it as it stretches the
+    scene (a scene scaled by ``s`` moves ``s`` times as fast).
+
+    Args:
+        flow: ``(X, Y, Z, 2)`` float32 ``vx, vy`` (m/s).
+        semantics: ``(X, Y, Z)`` the labels of the same frame, before the augmentation.
+        occ_aug: ``(4, 4)`` augmentation of the grid's frame.
+        grid: the volumes' grid.
+        fill, empty: the label of voxels mapped from outside the grid and the free-space label, as given to
+            :func:`augment_occupancy` for ``semantics``.
+
+    Returns:
+        ``(X, Y, Z, 2)`` float32, a new contiguous array.
+    """
+    if flow.shape != (*grid.shape, 2):
+        raise ValueError(f"flow has shape {tuple(flow.shape)} but the grid {grid!r} needs {(*grid.shape, 2)}")
+    matrix = occ_aug.detach().cpu().to(torch.float64)
+    linear = matrix[:2, :2].numpy()
+    flip_axes = _pure_flip_axes(matrix.numpy())
+    if flip_axes is not None:
+        moved = augment_occupancy(flow[..., 0], occ_aug, grid, 0), augment_occupancy(flow[..., 1], occ_aug, grid, 0)
+        moved = np.stack(moved, axis=-1)
+    else:
+        source = _first_sources(np.ascontiguousarray(semantics), matrix, grid, fill, empty)
+        flat = flow.reshape(-1, 2)
+        moved = np.where(source[:, None] >= 0, flat[np.maximum(source, 0)], 0.0).reshape(*grid.shape, 2)
+    # Vectors turn with the linear part, computed in float64 and rounded once (a flip is exact either way).
+    return np.ascontiguousarray((moved.astype(np.float64) @ linear.T).astype(np.float32))
+
+
+def _first_sources(semantics: np.ndarray, matrix: Tensor, grid: VoxelGrid, fill: int, empty: int) -> np.ndarray:
+    """``(X*Y*Z,)`` int64 flat input voxel each output voxel's label comes from in :func:`augment_occupancy`'s
+    resampling (the first octant sample that is not ``empty``, else the first), -1 where that sample is outside."""
+    flat, inside = _octant_sources(matrix.numpy().tobytes(), grid, "cpu")
+    samples = torch.from_numpy(semantics).reshape(-1)[flat]
+    samples[~inside] = fill
+    occupied = samples != empty
+    first = torch.where(occupied.any(dim=1), occupied.to(torch.uint8).argmax(dim=1), 0)
+    chosen = flat.gather(1, first[:, None])[:, 0]
+    return torch.where(inside.gather(1, first[:, None])[:, 0], chosen, -1).numpy()
+
+
 def drop_cameras(
     images: Tensor, drop: Sequence[int] | float, rng: np.random.Generator | None = None
 ) -> tuple[Tensor, Tensor]:

@@ -29,6 +29,7 @@ import torch
 from torch import Tensor, nn
 
 from occkit.experiment import Experiment
+from occkit.models.heads.flow import FlowHead
 from occkit.models.heads.occupancy import occupancy_prediction
 from occkit.models.temporal import StreamMemory, TemporalFusion
 from occkit.types import Batch, ModelOutput, OccPrediction
@@ -60,6 +61,9 @@ class OccupancyModel(nn.Module, metaclass=abc.ABCMeta):
         self.temporal: TemporalFusion | None = None
         """The history stage of a temporal model (:mod:`occkit.models.temporal`, set by its ``__init__``); None for
         single-frame models."""
+        self.flow_head: FlowHead | None = None
+        """The occupancy flow head (:mod:`occkit.models.heads.flow`, set by ``__init__`` when the config has
+        ``flow``); it reads what the occupancy head reads."""
 
     @abc.abstractmethod
     def plan(self, batch: Batch) -> Any:
@@ -106,8 +110,25 @@ class OccupancyModel(nn.Module, metaclass=abc.ABCMeta):
 
     @torch.no_grad()
     def predict(self, batch: Batch, *, memory: StreamMemory | None = None) -> OccPrediction:
-        """Class ids ``(B, X, Y, Z)`` uint8 (a stream step with a ``memory``)."""
-        return occupancy_prediction(self.forward(batch, memory=memory).occupancy)
+        """Class ids ``(B, X, Y, Z)`` uint8, and the flow of a model with a flow head (a stream step with a
+        ``memory``)."""
+        output = self.forward(batch, memory=memory)
+        prediction = occupancy_prediction(output.occupancy)
+        prediction.flow = output.flow
+        return prediction
+
+    # ----------------------------------------------------------------------------------------------------- flow
+    def flow(self, features: Tensor) -> Tensor | None:
+        """The flow head's ``(B, X, Y, Z, 2)`` velocities from the occupancy head's input; None without a head."""
+        return None if self.flow_head is None else self.flow_head(features)
+
+    def flow_losses(self, output: ModelOutput, batch: Batch) -> dict[str, Tensor]:
+        """``{"flow": weighted L1}`` of a model with a flow head (:meth:`FlowHead.loss`); empty without one."""
+        if self.flow_head is None:
+            return {}
+        if output.flow is None:
+            raise ValueError(f"{type(self).__name__} has a flow head but its output carries no flow")
+        return {"flow": self.flow_head.loss(output.flow, batch.voxel_flow, batch.voxel_semantics)}
 
     # -------------------------------------------------------------------------------------------------- history
     def frame_bev(self, images: Tensor, plan: Any) -> Tensor:

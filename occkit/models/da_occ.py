@@ -70,6 +70,7 @@ from occkit.models.base import FIXED_CALIBRATION_RETIRED, Architecture, Occupanc
 from occkit.models.bev_encoder import BevEncoder, BevEncoderConfig
 from occkit.models.dac import DACBlock
 from occkit.models.heads.depth import DepthNet, DepthNetConfig, camera_parameters, lidar_target
+from occkit.models.heads.flow import FlowHead, FlowHeadConfig
 from occkit.models.heads.occupancy import OccupancyHead, OccupancyHeadConfig
 from occkit.models.image_encoder import ImageEncoder, ImageEncoderConfig
 from occkit.models.temporal import HISTORY_INPUTS, TemporalConfig, TemporalFusion
@@ -160,6 +161,9 @@ class DirectionAwareOccConfig:
         default_factory=lambda: OccupancyHeadConfig(in_channels=256, hidden_channels=256)
     )
     """Channel-to-height head (FlashOcc M1's width)."""
+    flow: FlowHeadConfig | None = None
+    """Occupancy flow head on the occupancy head's input (the data then loads flow: ``data.flow = true``); None:
+    no flow, as the paper."""
     loss_weights: DAOccLossWeights = field(default_factory=DAOccLossWeights)
     """Weights of the loss terms; a weight of 0 leaves its term (and its LiDAR target) out."""
     temporal: TemporalConfig | None = None
@@ -201,6 +205,8 @@ class DirectionAwareOccConfig:
             "occupancy.in_channels": (self.occupancy.in_channels, self.fusion_channels, "fusion_channels"),
             "fusion_channels": (self.fusion_channels, self.bev.neck_channels, "bev.neck_channels"),
         }
+        if self.flow is not None:
+            checks["flow.in_channels"] = (self.flow.in_channels, self.occupancy.in_channels, "occupancy.in_channels")
         nets = {"depth_net": (self.depth_net, self.depth_bins), "height_net": (self.height_net, self.height_bins)}
         for name, (net, bins) in nets.items():
             if net is not None:
@@ -274,6 +280,8 @@ class DirectionAwareOcc(OccupancyModel):
             self.height_reduce = nn.Conv2d(context * z, channels, 1)
             self.fuse = nn.Conv2d(2 * channels, channels, 1)
         self.occupancy_head = OccupancyHead(cfg.occupancy)
+        if cfg.flow is not None:
+            self.flow_head = FlowHead(cfg.flow)
 
     @property
     def camera_aware(self) -> bool:
@@ -333,7 +341,8 @@ class DirectionAwareOcc(OccupancyModel):
             bev, state = self.temporal(bev, *(inputs[name] for name in HISTORY_INPUTS))
         bev = self._bev_decoder(self.bev_encoder(bev))  # F_BEV' (B, C', X, Y)
         if self.height_net is None:  # FlashOcc with the BEV DACs
-            return ModelOutput(occupancy=self.occupancy_head(bev), depth=depth, history_state=state)
+            return ModelOutput(occupancy=self.occupancy_head(bev), depth=depth, history_state=state,
+                               flow=self.flow(bev))  # fmt: skip
 
         height_logits, _ = self.height_net(features.flatten(0, 1), plan.camera_params)
         height = height_logits.softmax(dim=1).unflatten(0, (batch_size, cameras))  # (B, N, Z, h, w)
@@ -343,8 +352,9 @@ class DirectionAwareOcc(OccupancyModel):
         folded = sliced.reshape(batch_size, c, z, x, y).transpose(1, 2).reshape(batch_size, z * c, x, y)
         heights = F.interpolate(self.height_reduce(folded), size=bev.shape[-2:], mode="bilinear", align_corners=False)
 
-        logits = self.occupancy_head(self.fuse(torch.cat([heights, bev], dim=1)))
-        return ModelOutput(occupancy=logits, depth=depth, height=height, history_state=state)
+        fused = self.fuse(torch.cat([heights, bev], dim=1))
+        return ModelOutput(occupancy=self.occupancy_head(fused), depth=depth, height=height, history_state=state,
+                           flow=self.flow(fused))  # fmt: skip
 
     def loss(self, output: ModelOutput, batch: Batch) -> dict[str, Tensor]:
         """DA-Occ's weighted loss terms: the occupancy CE and the scene-class affinities, the height BCE with a height
@@ -370,6 +380,7 @@ class DirectionAwareOcc(OccupancyModel):
         losses["geometric_affinity"] = w.geometric_affinity * counted_affinity_geometric(
             voxels, self.cfg.occupancy.free_index
         )
+        losses.update(self.flow_losses(output, batch))
         return losses
 
 
@@ -535,19 +546,38 @@ def da_occ_tiny_temporal() -> Experiment:
     return Experiment("da_occ", model, cpu_data(DATA), dataclasses.replace(CPU_TRAIN, sampler="streams"))
 
 
+def _with_flow(experiment: Experiment) -> Experiment:
+    """``experiment`` with a flow head on its occupancy head's input, trained on labels that carry flow."""
+    channels = experiment.model.occupancy.in_channels
+    model = dataclasses.replace(experiment.model, flow=FlowHeadConfig(in_channels=channels, hidden_channels=channels))
+    return dataclasses.replace(experiment, model=model, data=dataclasses.replace(experiment.data, flow=True))
+
+
+def da_occ_tiny_flow() -> Experiment:
+    """da_occ_tiny with an occupancy flow head (two velocities per voxel, channel-to-height, L1 on the occupied
+    voxels), trained on labels that carry flow (``data.flow``): the single-frame side of the flow comparison."""
+    return _with_flow(da_occ_tiny())
+
+
+def da_occ_tiny_temporal_flow() -> Experiment:
+    """da_occ_tiny_temporal with the flow head of da_occ_tiny_flow: its recurrent BEV history lets the head see
+    motion, which a single frame shows only through poses and context."""
+    return _with_flow(da_occ_tiny_temporal())
+
+
 ARCHITECTURE = Architecture(
     name="da_occ",
     config=DirectionAwareOccConfig,
     model=DirectionAwareOcc,
     presets={f.__name__: f for f in (da_occ, da_occ_depth, da_occ_no_mask, da_occ_height4, da_occ_no_dac,
                                      da_occ_dac_height_only, da_occ_1f, da_occ_16f, da_occ_tiny,
-                                     da_occ_tiny_temporal)},
+                                     da_occ_tiny_temporal, da_occ_tiny_flow, da_occ_tiny_temporal_flow)},
     stages={
         "image_encoder": ("image_encoder",),
         "view_transform": ("depth_net", "height_net"),
         # DA-Occ's decoders: the DACs on F_bev and on the height volume, its reduction and the fusing 1x1 conv.
         "fusion_bev_encoder": ("temporal", "bev_encoder", "bev_horizontal", "bev_vertical", "height_vertical",
                                "height_reduce", "fuse"),
-        "heads": ("occupancy_head",),
+        "heads": ("occupancy_head", "flow_head"),
     },
 )  # fmt: skip

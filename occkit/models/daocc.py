@@ -29,6 +29,7 @@ from occkit.label_space import OCC3D_SPACE, SURROUNDOCC_SPACE, LabelSpace
 from occkit.models.base import Architecture, CameraInputs, Deployment, OccupancyModel, camera_images
 from occkit.models.bev_encoder import BevEncoder, BevEncoderConfig, ConvFuser
 from occkit.models.heads.center import CenterHead, CenterHeadConfig
+from occkit.models.heads.flow import FlowHead, FlowHeadConfig
 from occkit.models.heads.occupancy import OccupancyHead, OccupancyHeadConfig, occupancy_prediction
 from occkit.models.image_encoder import ImageEncoder, ImageEncoderConfig
 from occkit.models.lidar_encoder import LidarEncoder, LidarEncoderConfig
@@ -66,6 +67,9 @@ class DAOccConfig:
     """BVRE: the +-54 m BEV resampled onto the occupancy grid."""
     occupancy: OccupancyHeadConfig = field(default_factory=OccupancyHeadConfig)
     """Channel-to-height head and occupancy loss."""
+    flow: FlowHeadConfig | None = None
+    """Occupancy flow head on the occupancy head's input, the range-extended BEV (the data then loads flow:
+    ``data.flow = true``); None: no flow, as the paper."""
     detection: CenterHeadConfig | None = field(default_factory=CenterHeadConfig)
     """Auxiliary CenterPoint head (training only); None removes it."""
     detection_loss_weight: float = 0.01
@@ -93,6 +97,8 @@ class DAOccConfig:
         }
         if self.image is not None:
             expected["view.in_channels"] = (self.view.in_channels, self.image.neck_channels, "image.neck_channels")
+        if self.flow is not None:
+            expected["flow.in_channels"] = (self.flow.in_channels, self.occupancy.in_channels, "occupancy.in_channels")
         if self.detection is not None:
             expected["detection.in_channels"] = (self.detection.in_channels, self.bev.neck_channels,
                                                  "bev.neck_channels")
@@ -144,6 +150,8 @@ class DAOcc(OccupancyModel):
         self.bev_encoder = BevEncoder(cfg.bev)
         self.range_extension = RangeExtension(cfg.range_extension, self.grid)
         self.occupancy_head = OccupancyHead(cfg.occupancy)
+        if cfg.flow is not None:
+            self.flow_head = FlowHead(cfg.flow)
         self.detection_head = CenterHead(cfg.detection) if cfg.detection is not None else None
 
     def remove_detection(self) -> None:
@@ -184,7 +192,8 @@ class DAOcc(OccupancyModel):
     def network(self, inputs: Mapping[str, Tensor], plan: FusionPlan, detect: bool | None = None) -> ModelOutput:
         """The occupancy logits, and the detection head's outputs in training or when ``detect`` is True."""
         bev = self.encode(inputs, plan)
-        output = ModelOutput(occupancy=self.occupancy_head(self.range_extension(bev, plan.range_grid)))
+        extended = self.range_extension(bev, plan.range_grid)
+        output = ModelOutput(occupancy=self.occupancy_head(extended), flow=self.flow(extended))
         run_detection = self.training if detect is None else detect
         if run_detection and self.detection_head is not None:
             output.detection = self.detection_head(bev)
@@ -208,6 +217,7 @@ class DAOcc(OccupancyModel):
             detection = self.detection_head.loss(output.detection, batch.boxes, batch.box_labels)
             for name in ("det_heatmap", "det_bbox"):
                 losses[name] = self.cfg.detection_loss_weight * detection[name]
+        losses.update(self.flow_losses(output, batch))
         return losses
 
     @torch.no_grad()
@@ -215,6 +225,7 @@ class DAOcc(OccupancyModel):
         """Class ids ``(B, X, Y, Z)`` uint8 and, with ``boxes``, decoded detections in the augmented LiDAR frame."""
         output = self.forward(batch, detect=boxes)
         prediction = occupancy_prediction(output.occupancy)
+        prediction.flow = output.flow
         if boxes and output.detection is not None:
             prediction.boxes, prediction.box_scores, prediction.box_labels = self.detection_head.decode(
                 output.detection
@@ -449,6 +460,6 @@ ARCHITECTURE = Architecture(
         "view_transform": ("view_transform",),
         "lidar_encoder": ("lidar_encoder",),
         "fusion_bev_encoder": ("fuser", "bev_encoder"),
-        "heads": ("range_extension", "occupancy_head"),
+        "heads": ("range_extension", "occupancy_head", "flow_head"),
     },
 )

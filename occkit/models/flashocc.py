@@ -27,6 +27,7 @@ from occkit.losses import depth_bce
 from occkit.models.base import Architecture, OccupancyModel, camera_images
 from occkit.models.bev_encoder import BevEncoder, BevEncoderConfig
 from occkit.models.heads.depth import lidar_target
+from occkit.models.heads.flow import FlowHead, FlowHeadConfig
 from occkit.models.heads.occupancy import OccupancyHead, OccupancyHeadConfig
 from occkit.models.image_encoder import ImageEncoder, ImageEncoderConfig
 from occkit.models.temporal import HISTORY_INPUTS, TemporalConfig, TemporalFusion
@@ -56,6 +57,9 @@ class FlashOccConfig:
     """BEV backbone and FPN_LSS neck (M0: 128 output channels; M1: 256)."""
     occupancy: OccupancyHeadConfig = field(default_factory=OccupancyHeadConfig)
     """Channel-to-height head and camera-masked CE."""
+    flow: FlowHeadConfig | None = None
+    """Occupancy flow head on the occupancy head's input (the data then loads flow: ``data.flow = true``); None:
+    no flow, as the paper."""
     depth_weight: float = 0.0
     """Weight of BEVDepth's depth BCE of the LSS depth bins against LiDAR depth, training only (the data then loads
     depth maps: ``data.depth_downsample = lss.feature_stride``). 0 in M0 and M1, which train without depth
@@ -88,6 +92,8 @@ class FlashOccConfig:
                                                                              "temporal" if self.temporal else "")),
             "occupancy.in_channels": (self.occupancy.in_channels, self.bev.neck_channels, "bev.neck_channels"),
         }  # fmt: skip
+        if self.flow is not None:
+            checks["flow.in_channels"] = (self.flow.in_channels, self.occupancy.in_channels, "occupancy.in_channels")
         for key, (value, wanted, source) in checks.items():
             if value != wanted:
                 raise ValueError(f"{key} = {value} must equal {source} = {wanted}")
@@ -113,6 +119,8 @@ class FlashOcc(OccupancyModel):
                                            (x_min, y_min, x_max, y_max), cfg.lss.grid_size[:2])
         self.bev_encoder = BevEncoder(cfg.bev)
         self.occupancy_head = OccupancyHead(cfg.occupancy)
+        if cfg.flow is not None:
+            self.flow_head = FlowHead(cfg.flow)
 
     def plan(self, batch: Batch) -> PoolingPlan:
         images = camera_images(batch, "FlashOcc")
@@ -131,8 +139,9 @@ class FlashOcc(OccupancyModel):
         state = None
         if self.temporal is not None:  # (B, (K + 1) 64, X, Y) for BEVDet4D's concatenation
             bev, state = self.temporal(bev, *(inputs[name] for name in HISTORY_INPUTS))
-        logits = self.occupancy_head(self.bev_encoder(bev))
-        return ModelOutput(occupancy=logits, depth=depth, history_state=state)
+        encoded = self.bev_encoder(bev)
+        return ModelOutput(occupancy=self.occupancy_head(encoded), depth=depth, history_state=state,
+                           flow=self.flow(encoded))  # fmt: skip
 
     def loss(self, output: ModelOutput, batch: Batch) -> dict[str, Tensor]:
         """The occupancy loss and, with ``depth_weight``, the depth BCE (FlashOcc M0/M1 have no depth supervision)."""
@@ -142,6 +151,7 @@ class FlashOcc(OccupancyModel):
         if self.cfg.depth_weight:
             maps = lidar_target(batch.depth_maps, output.depth, "depth", "FlashOcc", self.cfg.lss.feature_stride)
             losses["depth"] = self.cfg.depth_weight * depth_bce(output.depth, maps, self.cfg.lss.depth_range)
+        losses.update(self.flow_losses(output, batch))
         return losses
 
 
@@ -218,15 +228,24 @@ def flashocc_tiny() -> Experiment:
     return Experiment("flashocc", model, cpu_data(DATA), CPU_TRAIN)
 
 
+def flashocc_tiny_flow() -> Experiment:
+    """flashocc_tiny with an occupancy flow head (two velocities per voxel, channel-to-height, L1 on the occupied
+    voxels), trained on labels that carry flow (``data.flow``, which the synthetic world writes): the CVPR 2024
+    occupancy-and-flow task at CPU size, scored with mAVE and OccScore."""
+    base = flashocc_tiny()
+    model = dataclasses.replace(base.model, flow=FlowHeadConfig(in_channels=32, hidden_channels=32))
+    return dataclasses.replace(base, model=model, data=dataclasses.replace(base.data, flow=True))
+
+
 ARCHITECTURE = Architecture(
     name="flashocc",
     config=FlashOccConfig,
     model=FlashOcc,
-    presets={f.__name__: f for f in (flashocc_m0, flashocc_m1, flashocc_m0_4d, flashocc_tiny)},
+    presets={f.__name__: f for f in (flashocc_m0, flashocc_m1, flashocc_m0_4d, flashocc_tiny, flashocc_tiny_flow)},
     stages={
         "image_encoder": ("image_encoder",),
         "view_transform": ("view_transform",),
         "fusion_bev_encoder": ("temporal", "bev_encoder"),
-        "heads": ("occupancy_head",),
+        "heads": ("occupancy_head", "flow_head"),
     },
 )

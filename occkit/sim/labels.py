@@ -36,6 +36,7 @@ __all__ = [
     "FREE",
     "CLASS_PRIORITY",
     "occupancy_labels",
+    "occupancy_flow_labels",
     "surroundocc_labels",
 ]
 
@@ -124,17 +125,19 @@ def _ellipse_square_min(x0, x1, y0, y1, qa, qb, qc):
 
 
 @njit(cache=True)
-def _claim(labels, rank, i, j, k, cls):
+def _claim(labels, owner, rank, i, j, k, cls, p):
     if rank[cls] > rank[labels[i, j, k]]:
         labels[i, j, k] = cls
+        owner[i, j, k] = p
 
 
 @njit(cache=True)
-def _paint_solids(labels, rank, kind, center, half_size, yaw, semantic, lower, size):
+def _paint_solids(labels, owner, rank, kind, center, half_size, yaw, semantic, lower, size):
     """Write every solid's class into the voxels it meets, where it outranks the current label.
 
     Args:
         labels: ``(X, Y, Z)`` uint8, updated in place.
+        owner: ``(X, Y, Z)`` int32, updated in place: the index of the solid whose class a voxel took.
         rank: ``(256,)`` int16 priority of each label value.
         kind, center, half_size, yaw, semantic: the :class:`Primitives` fields in the grid's frame.
         lower, size: ``(3,)`` grid lower corner and voxel size (m).
@@ -171,13 +174,13 @@ def _paint_solids(labels, rank, kind, center, half_size, yaw, semantic, lower, s
                     dx, dy = x0 + half_x - cx, y0 + half_y - cy
                     if _box_meets_square(dx, dy, half_x, half_y, cos_yaw, sin_yaw, hx, hy):
                         for k in range(k0, k1 + 1):
-                            _claim(labels, rank, i, j, k, cls)
+                            _claim(labels, owner, rank, i, j, k, cls, p)
                 elif kind[p] == CYLINDER:
                     dx = min(max(cx, x0), x0 + size[0]) - cx
                     dy = min(max(cy, y0), y0 + size[1]) - cy
                     if dx * dx + dy * dy <= (hx + _SLACK) ** 2:
                         for k in range(k0, k1 + 1):
-                            _claim(labels, rank, i, j, k, cls)
+                            _claim(labels, owner, rank, i, j, k, cls, p)
                 else:
                     flat = _ellipse_square_min(x0 - cx, x0 + size[0] - cx, y0 - cy, y0 + size[1] - cy, qa, qb, qc)
                     if flat > 1.0 + _SLACK:
@@ -186,7 +189,7 @@ def _paint_solids(labels, rank, kind, center, half_size, yaw, semantic, lower, s
                         z0 = lower[2] + k * size[2]
                         dz = (min(max(cz, z0), z0 + size[2]) - cz) / hz
                         if flat + dz * dz <= 1.0 + _SLACK:
-                            _claim(labels, rank, i, j, k, cls)
+                            _claim(labels, owner, rank, i, j, k, cls, p)
 
 
 # ---------------------------------------------------------------------------------------------------- frames
@@ -243,13 +246,19 @@ def _frame_labels(
     grid: VoxelGrid,
     supersample: int,
     name: str,
-) -> np.ndarray:
-    """Dense ``(X, Y, Z)`` uint8 Occ3D labels over ``grid`` in the frame of the level pose ``frame2global``."""
+) -> tuple[np.ndarray, np.ndarray, float]:
+    """Dense labels over ``grid`` in the frame of the level pose ``frame2global``.
+
+    Returns:
+        ``(labels, owner, yaw)``: ``(X, Y, Z)`` uint8 Occ3D labels, ``(X, Y, Z)`` int32 index into ``primitives`` of
+        the solid each voxel's class came from (-1: free or ground), and the frame's yaw in the global frame (rad).
+    """
     if supersample < 1:
         raise ValueError(f"supersample must be >= 1, got {supersample}")
     _check_primitives(primitives)
     yaw, translation = _level_pose(frame2global, name)
     labels = np.full(grid.shape, FREE, dtype=np.uint8)
+    owner = np.full(grid.shape, -1, dtype=np.int32)
     _paint_ground(labels, ground, yaw, translation, grid, supersample)
     c, s = math.cos(yaw), math.sin(yaw)
     offset = primitives.center - translation
@@ -258,6 +267,7 @@ def _frame_labels(
     )
     _paint_solids(
         labels,
+        owner,
         _RANK,
         np.ascontiguousarray(primitives.kind, dtype=np.int8),
         np.ascontiguousarray(center),
@@ -267,7 +277,7 @@ def _frame_labels(
         np.asarray(grid.lower),
         np.asarray(grid.voxel_size),
     )
-    return labels
+    return labels, owner, yaw
 
 
 # ---------------------------------------------------------------------------------------------------- labels
@@ -290,7 +300,44 @@ def occupancy_labels(
     Returns:
         ``(X, Y, Z)`` uint8, ``labels[i, j, k]`` the class of voxel ``(x_i, y_j, z_k)``: Occ3D ids 0..16, 17 free.
     """
-    return _frame_labels(primitives, ground, ego2global, grid, supersample, "ego2global")
+    return _frame_labels(primitives, ground, ego2global, grid, supersample, "ego2global")[0]
+
+
+def occupancy_flow_labels(
+    primitives: Primitives,
+    velocity: np.ndarray,
+    ground: GroundMap,
+    ego2global: np.ndarray,
+    grid: VoxelGrid = OCC3D_GRID,
+    supersample: int = 2,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Occ3D-style semantic occupancy and its flow in the ego frame (the challenge's ``flow`` of OpenOcc v2).
+
+    A voxel's flow is the velocity of the solid that gave it its class: its object's box velocity, the same for
+    every voxel of the object (the benchmark's flow comes from box velocities, so a turning object's rotation is not
+    in it), turned into the ego frame. It is the object's own velocity, not relative to the moving ego: zero on
+    ground and free voxels and on static solids.
+
+    Args:
+        primitives: the world's solids at the key frame's instant (global frame).
+        velocity: ``(P, 2)`` float64 global ``vx, vy`` (m/s) of each solid (:meth:`World.primitive_velocities`).
+        ground, ego2global, grid, supersample: as :func:`occupancy_labels`.
+
+    Returns:
+        ``(labels, flow)``: the labels of :func:`occupancy_labels` and ``(X, Y, Z, 2)`` float32 ego-frame
+        ``vx, vy`` (m/s).
+    """
+    velocity = np.asarray(velocity, dtype=np.float64)
+    if velocity.shape != (len(primitives), 2):
+        raise ValueError(f"velocity must have shape ({len(primitives)}, 2), one row per solid; got {velocity.shape}")
+    labels, owner, yaw = _frame_labels(primitives, ground, ego2global, grid, supersample, "ego2global")
+    c, s = math.cos(yaw), math.sin(yaw)
+    # Global to ego is the transpose of the ego's rotation about z.
+    ego_velocity = np.stack((c * velocity[:, 0] + s * velocity[:, 1], -s * velocity[:, 0] + c * velocity[:, 1]), -1)
+    flow = np.zeros((*grid.shape, 2), dtype=np.float32)
+    solid = owner >= 0
+    flow[solid] = ego_velocity[owner[solid]]
+    return labels, flow
 
 
 def surroundocc_labels(
@@ -317,6 +364,6 @@ def surroundocc_labels(
         voxels omitted. Labels 1..16 are the Occ3D classes of the same ids; Occ3D "others" (0) is written as 0, the
         value SurroundOcc's files give to noise.
     """
-    labels = _frame_labels(primitives, ground, lidar2global, grid, supersample, "lidar2global")
+    labels = _frame_labels(primitives, ground, lidar2global, grid, supersample, "lidar2global")[0]
     index = np.argwhere(labels != FREE)
     return np.concatenate((index, labels[tuple(index.T)][:, None]), axis=1).astype(np.int64)

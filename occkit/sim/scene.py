@@ -29,7 +29,7 @@ from occkit.sim.config import (
     camera_time_offsets_us,
     scene_name,
 )
-from occkit.sim.labels import occupancy_labels, surroundocc_labels
+from occkit.sim.labels import occupancy_flow_labels, surroundocc_labels
 from occkit.sim.lidar import lidarseg_labels, scan_lidar
 from occkit.sim.primitives import Primitives
 from occkit.sim.raytrace import cast_rays
@@ -356,7 +356,8 @@ def simulate_scene(config: SimConfig, index: int, root: Path, progress: Callable
 
         primitives = world.primitives(t_key)
         with timer("labels"):
-            semantics = occupancy_labels(primitives, world.ground, ego2global, OCC3D_GRID)
+            velocity = world.primitive_velocities(t_key)
+            semantics, flow = occupancy_flow_labels(primitives, velocity, world.ground, ego2global, OCC3D_GRID)
         with timer("mask_lidar"):
             global2ego = np.linalg.inv(ego2global)
             rays = []
@@ -373,7 +374,7 @@ def simulate_scene(config: SimConfig, index: int, root: Path, progress: Callable
             )
         gt_path = f"gts/{scene.name}/{sample_token}/labels.npz"
         with timer("write"):
-            write_occ3d_labels(scene.root / gt_path, semantics, mask_lidar, mask_camera)
+            write_occ3d_labels(scene.root / gt_path, semantics, mask_lidar, mask_camera, flow)
             if config.surroundocc:
                 lidar_file = Path(key_sweep.filename).name
                 sparse = surroundocc_labels(primitives, world.ground, ego2global @ lidar2ego, SURROUNDOCC_GRID)

@@ -154,6 +154,14 @@ class World:
         moving = place_solids(self._mover_rows, x[owner, 0], y[owner, 0], yaw[owner, 0], self._mover_ids)
         return Primitives.concatenate([self._static, moving])
 
+    def primitive_velocities(self, t: float) -> np.ndarray:
+        """``(P, 2)`` float64 global ``vx, vy`` (m/s) of every solid of :meth:`primitives` at time ``t``, row for row:
+        zero for static solids, the object's box velocity (:meth:`boxes`) for a moving one."""
+        _, _, _, vx, vy = self._tracks.poses(self._paths, np.array([float(t)]))
+        owner = self._mover_owner
+        moving = np.stack((vx[owner, 0], vy[owner, 0]), axis=-1).reshape(-1, 2)
+        return np.concatenate((np.zeros((len(self._static), 2)), moving))
+
     def boxes(self, t: float) -> list[BoxState]:
         """Boxes of all annotated objects at time ``t`` (s), by instance id; culling by range is the caller's."""
         boxes = [

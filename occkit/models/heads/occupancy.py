@@ -23,7 +23,8 @@ from occkit.losses import (
 )
 from occkit.types import OccPrediction
 
-__all__ = ["OccupancyHeadConfig", "OccupancyHead", "OCC3D_CLASS_FREQUENCIES", "occupancy_prediction"]
+__all__ = ["OccupancyHeadConfig", "OccupancyHead", "OCC3D_CLASS_FREQUENCIES", "occupancy_prediction",
+           "channel_to_height"]
 
 #: Voxel counts per Occ3D class (0..16, 17 = free) over the nuScenes train split, as BEVDet's class balance uses.
 OCC3D_CLASS_FREQUENCIES = (
@@ -62,17 +63,23 @@ def occupancy_prediction(logits: Tensor) -> OccPrediction:
     return OccPrediction(semantics=logits.argmax(dim=1).to(torch.uint8))
 
 
+def channel_to_height(in_channels: int, hidden_channels: int, outputs: int) -> tuple[nn.Module, nn.Module]:
+    """The layers of a channel-to-height head: ``conv3x3 + ReLU`` on the BEV, then per BEV cell the MLP
+    ``Linear(C, 2C) -> Softplus -> Linear(2C, outputs)`` (``outputs`` = the column's voxels x values per voxel)."""
+    conv = nn.Sequential(nn.Conv2d(in_channels, hidden_channels, 3, padding=1), nn.ReLU(inplace=True))
+    predictor = nn.Sequential(
+        nn.Linear(hidden_channels, 2 * hidden_channels), nn.Softplus(), nn.Linear(2 * hidden_channels, outputs)
+    )
+    return conv, predictor
+
+
 class OccupancyHead(nn.Module):
     """``forward(bev (B, C, X, Y)) -> logits (B, K, X, Y, Z)``; ``loss(logits, labels, mask)``."""
 
     def __init__(self, cfg: OccupancyHeadConfig) -> None:
         super().__init__()
-        self.conv = nn.Sequential(nn.Conv2d(cfg.in_channels, cfg.hidden_channels, 3, padding=1), nn.ReLU(inplace=True))
-        self.predictor = nn.Sequential(
-            nn.Linear(cfg.hidden_channels, 2 * cfg.hidden_channels),
-            nn.Softplus(),
-            nn.Linear(2 * cfg.hidden_channels, cfg.height * cfg.num_classes),
-        )
+        self.conv, self.predictor = channel_to_height(cfg.in_channels, cfg.hidden_channels,
+                                                      cfg.height * cfg.num_classes)  # fmt: skip
         if cfg.class_balance:
             if cfg.num_classes != len(OCC3D_CLASS_FREQUENCIES):
                 raise ValueError(f"class_balance uses Occ3D's 18 class frequencies, not {cfg.num_classes} classes")
