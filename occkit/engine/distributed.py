@@ -97,11 +97,13 @@ def broadcast_tensors(tensors: list[torch.Tensor], src: int = 0) -> None:
 
 
 def all_reduce_sum(array: np.ndarray) -> np.ndarray:
-    """Integer counts ``array`` summed over the ranks (itself outside a process group)."""
+    """Counts or sums ``array`` summed over the ranks (itself outside a process group): integers as int64, anything
+    else as float64."""
     if not (torch.distributed.is_available() and torch.distributed.is_initialized()):
         return array
     device = "cuda" if torch.distributed.get_backend() == "nccl" else "cpu"
-    counts = torch.from_numpy(np.ascontiguousarray(array, dtype=np.int64)).to(device)
+    dtype = np.int64 if np.asarray(array).dtype.kind in "iub" else np.float64
+    counts = torch.from_numpy(np.ascontiguousarray(array, dtype=dtype)).to(device)
     torch.distributed.all_reduce(counts)
     return counts.cpu().numpy()
 

@@ -107,7 +107,8 @@ def evaluate_model(
 
     Returns:
         ``miou``, ``iou``, ``per_class_iou``, ``label_space``, ``mask``, ``frames`` (scored), ``skipped`` (frames that
-        failed to load under ``on_error="skip"``, not scored) and with origins ``rayiou``, ``rayiou@1/2/4``.
+        failed to load under ``on_error="skip"``, not scored) and with origins ``rayiou``, ``rayiou@1/2/4``, and
+        for a model with a flow head ``mave`` and ``occ_score`` (the CVPR 2024 challenge's, on the same rays).
     """
     space = dataset.space
     if ray_origins is not None and not space.rayiou:
@@ -118,14 +119,19 @@ def evaluate_model(
     device = next(model.parameters()).device
     metric = OccupancyMetric.for_space(space, mask)
     ray_counts = _frame_counts(rayiou([], [], [])["counts"])  # zeros: a rank may hold no frame at all
-    frames = 0
+    velocity_errors = np.zeros((2, space.num_classes))  # summed AVE and true-positive rays per class (flow models)
+    flow_frames = frames = 0
     memory, batch_size = stream_memory(model, batch_size)
     loader = split_loader(dataset, batch_size, workers, context, by_scene=memory is not None)
     share = len(loader.sampler)
     for index, batch in enumerate(loader):
         if len(batch) > 0:  # else every frame of the batch failed to load (on_error="skip")
             before = memory.state_dict() if memory is not None and dataset.corruption is not None else None
-            semantics = _predict(model, batch.to(device), memory).semantics.cpu().numpy()
+            prediction = _predict(model, batch.to(device), memory)
+            semantics = prediction.semantics.cpu().numpy()
+            # Flow is scored where the data has it (data.flow); without it, the model is scored as any other.
+            scored_flow = prediction.flow is not None and batch.voxel_flow is not None
+            flows = prediction.flow.float().cpu().numpy() if scored_flow else None
             if before is not None and dataset.corruption.forget(batch.tokens[0]):
                 memory.load_state_dict(before)  # the frame is lost to the frames after it (history_dropped)
             labels = batch.voxel_semantics.numpy()
@@ -133,10 +139,16 @@ def evaluate_model(
                      for name, value in (("mask_camera", batch.mask_camera), ("mask_lidar", batch.mask_lidar))}
             metric.update(labels, semantics, **masks)
             for i, token in enumerate(batch.tokens):
+                flow = None if flows is None else flows[i]
                 if predictions is not None:
-                    write_prediction(predictions, token, semantics[i])
+                    write_prediction(predictions, token, semantics[i], flow)
                 if ray_origins is not None:
-                    ray_counts += _frame_counts(rayiou([labels[i]], [semantics[i]], [ray_origins[token]])["counts"])
+                    flows_of = {} if flow is None else {"gt_flows": [batch.voxel_flow[i].numpy()], "pred_flows": [flow]}
+                    counts = rayiou([labels[i]], [semantics[i]], [ray_origins[token]], **flows_of)["counts"]
+                    ray_counts += _frame_counts(counts)
+                    if flow is not None:
+                        velocity_errors += [counts["ave_sum"], counts["ave_count"]]
+                        flow_frames += 1
             frames += len(batch)
         if progress is not None:
             progress(min(batch_size, share - index * batch_size))
@@ -148,7 +160,9 @@ def evaluate_model(
                     frames + skipped)  # fmt: skip
     result = {**metric.compute(), "label_space": space.name, "mask": mask, "frames": frames, "skipped": skipped}
     if ray_origins is not None:
-        result.update(_rayiou_summary(distributed.all_reduce_sum(ray_counts)))
+        velocity_errors = distributed.all_reduce_sum(velocity_errors)
+        flow_frames = int(distributed.all_reduce_sum(np.array([flow_frames]))[0])
+        result.update(_rayiou_summary(distributed.all_reduce_sum(ray_counts), velocity_errors if flow_frames else None))
     return result
 
 
@@ -157,10 +171,14 @@ def _frame_counts(counts: dict) -> np.ndarray:
     return np.concatenate(parts).astype(np.int64)
 
 
-def _rayiou_summary(counts: np.ndarray) -> dict[str, float]:
+def _rayiou_summary(counts: np.ndarray, velocity_errors: np.ndarray | None = None) -> dict[str, float]:
+    """RayIoU from the summed ray counts and, with the summed ``(2, K)`` velocity errors and true-positive rays of a
+    flow model, mAVE and OccScore."""
     parts = np.split(counts, 2 + len(RAYIOU_THRESHOLDS))
-    summary = rayiou_from_counts(parts[0], parts[1], np.stack(parts[2:]))
-    return {key: float(summary[key]) for key in ("rayiou", "rayiou@1", "rayiou@2", "rayiou@4")}
+    flow = () if velocity_errors is None else (velocity_errors[0], velocity_errors[1].round().astype(np.int64))
+    summary = rayiou_from_counts(parts[0], parts[1], np.stack(parts[2:]), *flow)
+    keys = ("rayiou", "rayiou@1", "rayiou@2", "rayiou@4") + (("mave", "occ_score") if flow else ())
+    return {key: float(summary[key]) for key in keys}
 
 
 def load_trained(

@@ -42,8 +42,9 @@ def predict_to_folder(model: nn.Module, dataset: OccupancyDataset, out: Path, ba
             batch = batch.to(device)
             prediction = model.predict(batch) if memory is None else model.predict(batch, memory=memory)
             semantics = prediction.semantics.cpu().numpy()
-            for token, grid in zip(batch.tokens, semantics, strict=True):
-                write_prediction(out, token, grid)
+            flows = [None] * len(semantics) if prediction.flow is None else prediction.flow.float().cpu().numpy()
+            for token, grid, flow in zip(batch.tokens, semantics, flows, strict=True):
+                write_prediction(out, token, grid, flow)
             written += len(batch)
         if progress is not None:
             progress(min(batch_size, share - index * batch_size))

@@ -34,6 +34,7 @@ __all__ = [
     "PRED_KEYS",
     "find_gt_labels",
     "read_prediction",
+    "read_prediction_flow",
     "read_ray_origins",
     "evaluate_predictions",
     "markdown_table",
@@ -112,13 +113,17 @@ def find_gt_labels(gt_root: str | Path, space: LabelSpace | str = OCC3D_SPACE,
     return dict(sorted(found.items()))
 
 
-def write_prediction(folder: Path, token: str, semantics: np.ndarray) -> Path:
-    """``folder/<token>.npz``, one Occ3D-format prediction file (``semantics``: uint8 ``(200, 200, 16)``), written
+def write_prediction(folder: Path, token: str, semantics: np.ndarray, flow: np.ndarray | None = None) -> Path:
+    """``folder/<token>.npz``, one Occ3D-format prediction file (``semantics``: uint8 ``(200, 200, 16)``; with
+    ``flow``, also ``flow``: float32 ``(200, 200, 16, 2)`` m/s, the key of the challenge's ground truth), written
     atomically. The token must be a safe name (:func:`~occkit.data.names.safe_name`), so the file stays in
     ``folder`` whatever the tables say."""
     path = path_under(folder, safe_name(token, f"sample token (writing into {folder})") + ".npz", str(folder))
+    arrays = {"semantics": semantics.astype(np.uint8)}
+    if flow is not None:
+        arrays["flow"] = flow.astype(np.float32)
     buffer = io.BytesIO()
-    np.savez_compressed(buffer, semantics=semantics.astype(np.uint8))
+    np.savez_compressed(buffer, **arrays)
     temporary = path.with_name(f".{path.name}.tmp")
     temporary.write_bytes(buffer.getvalue())
     temporary.replace(path)
@@ -133,10 +138,34 @@ def read_prediction(path: str | Path, space: LabelSpace | str = OCC3D_SPACE) -> 
         ValueError: unreadable file, no known key, wrong shape, non-integer dtype or ids outside the space's classes;
             the message names the file.
     """
-    space = label_space(space)
-    shape, last = space.grid.shape, space.num_classes - 1
     path = Path(path)
-    arrays = _load_npz(path, "prediction")
+    return _prediction_grid(_load_npz(path, "prediction"), path, label_space(space))
+
+
+def read_prediction_flow(path: str | Path, space: LabelSpace | str = OCC3D_SPACE) -> np.ndarray | None:
+    """The ``flow`` of a prediction file as float32 ``(X, Y, Z, 2)`` m/s, or None when it has none.
+
+    Raises:
+        ValueError: unreadable file, or a flow of the wrong shape or dtype or with values that are not finite.
+    """
+    path = Path(path)
+    return _prediction_flow(_load_npz(path, "prediction"), path, label_space(space))
+
+
+def _prediction_flow(arrays: Mapping[str, np.ndarray], path: Path, space: LabelSpace) -> np.ndarray | None:
+    flow = arrays.get("flow")
+    if flow is None:
+        return None
+    shape = (*space.grid.shape, 2)
+    if flow.shape != shape or flow.dtype.kind != "f":
+        raise ValueError(f"{path}: flow must be a float {shape} array (m/s), got {flow.dtype} {flow.shape}")
+    if not np.isfinite(flow).all():
+        raise ValueError(f"{path}: flow holds values that are not finite")
+    return flow.astype(np.float32, copy=False)
+
+
+def _prediction_grid(arrays: Mapping[str, np.ndarray], path: Path, space: LabelSpace) -> np.ndarray:
+    shape, last = space.grid.shape, space.num_classes - 1
     key = next((k for k in PRED_KEYS if k in arrays), None)
     if key is None:
         raise ValueError(f"{path}: has none of the keys {', '.join(PRED_KEYS)} (keys: {', '.join(arrays) or 'none'})")
@@ -179,17 +208,23 @@ def _score_frame(
     space: LabelSpace, token: str, gt_path: Path, pred_path: Path | None, mask: str | None,
     origins: np.ndarray | None,
 ) -> tuple[np.ndarray, dict | None]:
-    """Confusion matrix of one frame and, when ``origins`` is given, its RayIoU counts."""
-    labels = read_labels(space, gt_path, token)
+    """Confusion matrix of one frame and, when ``origins`` is given, its RayIoU counts (with the velocity errors
+    when the prediction carries flow)."""
     # A frame without a prediction (allowed by the caller) is scored as if everything were predicted free.
-    pred = (np.full(space.grid.shape, space.free_index, np.uint8) if pred_path is None
-            else read_prediction(pred_path, space))  # fmt: skip
+    if pred_path is None:
+        pred, pred_flow = np.full(space.grid.shape, space.free_index, np.uint8), None
+    else:
+        arrays = _load_npz(pred_path, "prediction")
+        pred, pred_flow = _prediction_grid(arrays, pred_path, space), _prediction_flow(arrays, pred_path, space)
+    scored_flow = pred_flow is not None and origins is not None
+    labels = read_labels(space, gt_path, token, flow=scored_flow)
     metric = OccupancyMetric.for_space(space, mask)
     metric.update(labels.semantics, pred, labels.mask_camera, labels.mask_lidar)
     if origins is None:
         return metric.confusion, None
+    flows = {"gt_flows": [labels.flow], "pred_flows": [pred_flow]} if scored_flow else {}
     try:
-        counts = rayiou([labels.semantics], [pred], [origins])["counts"]
+        counts = rayiou([labels.semantics], [pred], [origins], **flows)["counts"]
     except ValueError as error:
         raise ValueError(f"sample {token}: RayIoU failed ({error})") from error
     return metric.confusion, counts
@@ -239,8 +274,9 @@ def evaluate_predictions(
 
     Returns:
         ``miou``, ``iou``, ``per_class_iou`` {class: float or None}, ``label_space``, ``mask``, ``frames``,
-        ``missing_predictions`` and with RayIoU ``rayiou``, ``rayiou@1``, ``rayiou@2``, ``rayiou@4``; fractions in
-        [0, 1], NaN as None.
+        ``missing_predictions`` and with RayIoU ``rayiou``, ``rayiou@1``, ``rayiou@2``, ``rayiou@4``, and when the
+        predictions carry ``flow`` also ``mave`` (m/s) and ``occ_score`` (the CVPR 2024 challenge's, read against
+        the ground truth's ``flow``); fractions in [0, 1], NaN as None.
 
     Raises:
         FileNotFoundError: a folder or the origins file does not exist.
@@ -267,7 +303,8 @@ def evaluate_predictions(
             raise ValueError(f"no ray origins for {len(missing)} of {len(tokens)} frames: {_token_list(missing)}")
 
     total = OccupancyMetric.for_space(space, mode)
-    ray_gt = ray_pred = ray_tp = 0
+    ray_gt = ray_pred = ray_tp = ave_sum = ave_count = 0
+    flow_frames = 0
     with ThreadPoolExecutor(max_workers=workers) as pool:
         futures = [
             pool.submit(_score_frame, space, t, gt_paths[t], pred_paths[t], mode,
@@ -282,6 +319,10 @@ def evaluate_predictions(
                     ray_gt = ray_gt + np.asarray(counts["gt"], np.int64)
                     ray_pred = ray_pred + np.asarray(counts["pred"], np.int64)
                     ray_tp = ray_tp + np.array([counts["tp"][t] for t in RAYIOU_THRESHOLDS], np.int64)
+                    if "ave_sum" in counts:
+                        ave_sum = ave_sum + np.asarray(counts["ave_sum"], np.float64)
+                        ave_count = ave_count + np.asarray(counts["ave_count"], np.int64)
+                        flow_frames += 1
                 if progress is not None:
                     progress(1)
         except BaseException:
@@ -301,8 +342,14 @@ def evaluate_predictions(
         "missing_predictions": sum(path is None for path in pred_paths.values()),
     }
     if compute_rayiou:
-        summary = rayiou_from_counts(ray_gt, ray_pred, ray_tp)
-        result.update({key: _finite_or_none(summary[key]) for key in ("rayiou", "rayiou@1", "rayiou@2", "rayiou@4")})
+        predicted = result["frames"] - result["missing_predictions"]
+        if 0 < flow_frames < predicted:
+            raise ValueError(f"{pred_dir}: {flow_frames} of {predicted} predictions carry flow: mAVE needs it in all "
+                             "of them (or in none, for RayIoU alone)")  # fmt: skip
+        flow = (ave_sum, ave_count) if flow_frames else ()
+        summary = rayiou_from_counts(ray_gt, ray_pred, ray_tp, *flow)
+        keys = ("rayiou", "rayiou@1", "rayiou@2", "rayiou@4") + (("mave", "occ_score") if flow else ())
+        result.update({key: _finite_or_none(summary[key]) for key in keys})
     return result
 
 
@@ -340,6 +387,9 @@ def markdown_table(result: Mapping) -> str:
             "|" + "|".join(" ---: " for _ in keys) + "|",
             "| " + " | ".join(_percent(result[key]) for key in keys) + " |",
         ]
+    if "mave" in result:
+        mave = "-" if result["mave"] is None else f"{result['mave']:.3f}"
+        lines += ["", "| mAVE (m/s) | OccScore |", "| ---: | ---: |", f"| {mave} | {_percent(result['occ_score'])} |"]
     return "\n".join(lines) + "\n"
 
 

@@ -1,11 +1,18 @@
-"""RayIoU of the SparseOcc protocol on Occ3D-nuScenes grids, value for value.
+"""RayIoU of the SparseOcc protocol on Occ3D-nuScenes grids, value for value, and the occupancy flow scores of the
+CVPR 2024 occupancy-and-flow challenge on the same rays: mAVE and OccScore.
 
 Rays leave the LiDAR positions of a frame's scene (``origins``, ego metres) in 39 pitches x 360 azimuths and stop at
 the first occupied voxel; a ray scores for a class when prediction and ground truth stop on that class at depths
-closer than a threshold (1, 2 and 4 m). The ray caster reproduces the reference's float arithmetic exactly: voxel
-coordinates rounded to float32 as its inputs are, Amanatides-Woo stepping in double precision from ``int(origin)``
-with its tie order, and the exit distance of the stopping voxel. The generic traversal in
-:mod:`occkit.geometry.raycast` resolves ties differently and is not used here.
+closer than a threshold (1, 2 and 4 m). With flow, each ray also reads the velocity of the voxel it stops in; the
+absolute velocity error (AVE) of a moving class is the mean L2 norm of the velocity difference over its true-positive
+rays at 2 m, mAVE the mean over the moving classes that have one, and OccScore = 0.9 RayIoU + 0.1 max(1 - mAVE, 0)
+(``projects/mmdet3d_plugin/datasets/ray_metrics.py`` of OccNet's challenge branch, the implementation its README
+names; its dtypes and sums are kept, see ``tests/golden/occupancy_flow``).
+
+The ray caster reproduces the reference's float arithmetic exactly: voxel coordinates rounded to float32 as its
+inputs are, Amanatides-Woo stepping in double precision from ``int(origin)`` with its tie order, and the exit
+distance of the stopping voxel. The generic traversal in :mod:`occkit.geometry.raycast` resolves ties differently
+and is not used here.
 
 Numpy arrays in and out; a numba kernel walks the rays.
 """
@@ -21,10 +28,18 @@ from numba import njit, prange
 
 from occkit.label_space import OCC3D_SPACE
 
-__all__ = ["RAYIOU_THRESHOLDS", "ray_directions", "cast_rays_exact", "rayiou", "rayiou_from_counts"]
+__all__ = ["RAYIOU_THRESHOLDS", "FLOW_CLASSES", "AVE_THRESHOLD", "ray_directions", "cast_rays_exact", "rayiou",
+           "rayiou_from_counts", "occ_score"]
 
 #: Depth thresholds in metres of RayIoU@1, @2 and @4.
 RAYIOU_THRESHOLDS: tuple[int, ...] = (1, 2, 4)
+
+#: The moving classes whose velocity error mAVE averages (the challenge's eight), by Occ3D name.
+FLOW_CLASSES: tuple[str, ...] = ("car", "truck", "trailer", "bus", "construction_vehicle", "bicycle", "motorcycle",
+                                 "pedestrian")  # fmt: skip
+
+#: Depth threshold (m) of the true-positive rays whose velocity errors AVE averages.
+AVE_THRESHOLD = 2
 
 # RayIoU is defined on Occ3D's ego-frame grid with its free class (SparseOcc's protocol).
 _GRID_SHAPE = OCC3D_SPACE.grid.shape
@@ -33,6 +48,7 @@ _LOWER = OCC3D_SPACE.grid.lower
 _VOXEL = float(np.float32(OCC3D_SPACE.grid.voxel_size[0]))
 _FREE = OCC3D_SPACE.free_index
 _NUM_CLASSES = len(OCC3D_SPACE.semantic_ids)
+_FLOW_IDS = tuple(OCC3D_SPACE.taxonomy.index(name) for name in FLOW_CLASSES)
 # Loop bound of the reference kernel (MAX_STEP): a ray that takes more steps stops where it is.
 _MAX_STEP = 1000
 
@@ -66,11 +82,12 @@ def ray_directions() -> np.ndarray:
 
 @njit(cache=True)
 def _cast_one(labels, xo, yo, zo, xe, ye, ze):
-    """Walk one ray through ``labels``; returns ``(distance in voxels, label)`` of the voxel it stops in.
+    """Walk one ray through ``labels``; returns ``(distance in voxels, label, x, y, z)`` of the voxel it stops in.
 
     ``(xo, yo, zo)`` and ``(xe, ye, ze)`` are the float32 origin and end point in voxel coordinates, widened to
     double. Stops at the exit of the first occupied voxel (label other than free), else at the exit of the last
-    voxel inside the grid; a ray that never enters the grid gives ``(-1, labels[0, 0, 0])`` like the reference.
+    voxel inside the grid; a ray that never enters the grid gives ``(-1, labels[0, 0, 0])`` at voxel ``(0, 0, 0)``
+    like the reference.
     """
     sx, sy, sz = labels.shape
     vx = int(xo)
@@ -97,6 +114,9 @@ def _cast_one(labels, xo, yo, zo, xe, ye, ze):
     was_inside = False
     last_d = -1.0
     last_label = labels[0, 0, 0]
+    last_x = 0
+    last_y = 0
+    last_z = 0
     for _ in range(_MAX_STEP + 1):
         inside = 0 <= vx < sx and 0 <= vy < sy and 0 <= vz < sz
         if not inside and was_inside:
@@ -127,14 +147,17 @@ def _cast_one(labels, xo, yo, zo, xe, ye, ze):
             was_inside = True
             label = labels[cx, cy, cz]
             if label != _FREE:
-                return d, label
+                return d, label, cx, cy, cz
             last_d = d
             last_label = label
-    return last_d, last_label
+            last_x = cx
+            last_y = cy
+            last_z = cz
+    return last_d, last_label, last_x, last_y, last_z
 
 
 @njit(cache=True, parallel=True)
-def _cast_kernel(labels, origins_vox, ends_vox, out_label, out_dist):
+def _cast_kernel(labels, origins_vox, ends_vox, out_label, out_dist, out_voxel):
     """Cast every ray of every origin.
 
     Args:
@@ -143,13 +166,14 @@ def _cast_kernel(labels, origins_vox, ends_vox, out_label, out_dist):
         ends_vox: ``(T, R, 3)`` float32 ray end points (origin + unit direction) in voxel coordinates.
         out_label: ``(T * R,)`` uint8, receives the labels.
         out_dist: ``(T * R,)`` float32, receives the distances in voxels.
+        out_voxel: ``(T * R, 3)`` int16, receives the index of the voxel each ray stops in.
     """
     n_origins = ends_vox.shape[0]
     n_rays = ends_vox.shape[1]
     for i in prange(n_origins * n_rays):
         t = i // n_rays
         r = i - t * n_rays
-        d, label = _cast_one(
+        d, label, x, y, z = _cast_one(
             labels,
             np.float64(origins_vox[t, 0]),
             np.float64(origins_vox[t, 1]),
@@ -160,6 +184,9 @@ def _cast_kernel(labels, origins_vox, ends_vox, out_label, out_dist):
         )
         out_label[i] = label
         out_dist[i] = np.float32(d)
+        out_voxel[i, 0] = x
+        out_voxel[i, 1] = y
+        out_voxel[i, 2] = z
 
 
 def _check_labels(labels: np.ndarray, name: str) -> np.ndarray:
@@ -188,16 +215,20 @@ def _to_voxels(points: np.ndarray) -> np.ndarray:
     return ((points - np.asarray(_LOWER)) / _VOXEL).astype(np.float32)
 
 
-def cast_rays_exact(labels: np.ndarray, origins: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def cast_rays_exact(
+    labels: np.ndarray, origins: np.ndarray, voxels: bool = False
+) -> tuple[np.ndarray, np.ndarray] | tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Cast the protocol's rays from each origin through one grid, bit for bit as SparseOcc's caster.
 
     Args:
         labels: ``(200, 200, 16)`` uint8 Occ3D labels in (x, y, z) order; 17 is free, every other value occupied.
         origins: ``(T, 3)`` ray origins in ego metres (converted to float64).
+        voxels: also return the voxel each ray stops in (the reference's ``coord_index``, where flow is read).
 
     Returns:
         ``(label, distance)``: ``(T * 14040,)`` uint8 label of the voxel each ray stops in and ``(T * 14040,)``
-        float32 distance in metres to that voxel's exit, origin-major then pitch then azimuth.
+        float32 distance in metres to that voxel's exit, origin-major then pitch then azimuth; with ``voxels``, also
+        ``(T * 14040, 3)`` int64 index of that voxel (``(0, 0, 0)`` for a ray that never enters the grid).
 
     Raises:
         ValueError: on a grid of another shape or dtype, or origins not ``(T, 3)`` finite numbers.
@@ -210,7 +241,10 @@ def cast_rays_exact(labels: np.ndarray, origins: np.ndarray) -> tuple[np.ndarray
     n = ends.shape[0] * ends.shape[1]
     out_label = np.empty(n, dtype=np.uint8)
     out_dist = np.empty(n, dtype=np.float32)
-    _cast_kernel(labels, _to_voxels(origins), ends, out_label, out_dist)
+    out_voxel = np.empty((n, 3), dtype=np.int16)
+    _cast_kernel(labels, _to_voxels(origins), ends, out_label, out_dist, out_voxel)
+    if voxels:
+        return out_label, out_dist * np.float32(_VOXEL), out_voxel.astype(np.int64)
     return out_label, out_dist * np.float32(_VOXEL)
 
 
@@ -218,38 +252,51 @@ def rayiou(
     gts: Sequence[np.ndarray] | np.ndarray,
     preds: Sequence[np.ndarray] | np.ndarray,
     origins: Sequence[np.ndarray] | np.ndarray,
+    gt_flows: Sequence[np.ndarray] | np.ndarray | None = None,
+    pred_flows: Sequence[np.ndarray] | np.ndarray | None = None,
 ) -> dict:
-    """RayIoU over a set of frames, as SparseOcc's ``main_rayiou``.
+    """RayIoU over a set of frames, as SparseOcc's ``main_rayiou``; with flows, also mAVE and OccScore as the CVPR
+    2024 challenge's ``ray_metrics.main``.
 
     Counts are summed over all rays of all frames whose ground-truth ray stops on something other than free space;
     a ray counts as a true positive at threshold ``t`` when both rays stop on the same label at depths differing by
-    less than ``t`` metres. IoU per class is ``TP / (GT + PRED - TP)`` (NaN for a class absent from both).
+    less than ``t`` metres. IoU per class is ``TP / (GT + PRED - TP)`` (NaN for a class absent from both). Each
+    moving class's velocity errors are summed per frame over its true positives at :data:`AVE_THRESHOLD`, in float32
+    as the reference sums them.
 
     Args:
         gts: ``(N, 200, 200, 16)`` uint8 ground-truth grids (an array or a sequence of ``(200, 200, 16)`` grids).
         preds: predicted grids, same layout.
         origins: ``N`` arrays of ``(T_i, 3)`` ray origins in each frame's ego metres (or one ``(N, T, 3)`` array).
+        gt_flows, pred_flows: ``N`` ``(200, 200, 16, 2)`` float occupancy flows (m/s), both or neither.
 
     Returns:
         ``rayiou`` (nanmean over the 3 thresholds x 17 classes), ``rayiou@1``, ``rayiou@2``, ``rayiou@4`` (nanmean
         over the 17 classes), ``per_class`` ``{threshold: list of 17 floats}`` and ``counts``
         ``{"gt": list of 18, "pred": list of 18, "tp": {threshold: list of 18}}`` with index 17 = free; thresholds
-        are the ints of :data:`RAYIOU_THRESHOLDS`.
+        are the ints of :data:`RAYIOU_THRESHOLDS`. With flows, also ``mave``, ``occ_score``, ``ave_per_class`` (17
+        floats, NaN for classes that do not move or have no true positive) and in ``counts`` ``ave_sum`` (18 floats)
+        and ``ave_count`` (18 ints).
 
     Raises:
-        ValueError: on mismatched frame counts or a grid or origin array of the wrong shape or dtype.
+        ValueError: on mismatched frame counts or a grid, flow or origin array of the wrong shape or dtype.
     """
     if not (len(gts) == len(preds) == len(origins)):
         raise ValueError(f"gts, preds and origins differ in length: {len(gts)}, {len(preds)}, {len(origins)}")
+    with_flow = gt_flows is not None or pred_flows is not None
+    if with_flow and (gt_flows is None or pred_flows is None or not len(gt_flows) == len(pred_flows) == len(gts)):
+        raise ValueError("gt_flows and pred_flows must both be given, one per frame")
     n_bins = 256
     gt_cnt = np.zeros(n_bins, dtype=np.int64)
     pred_cnt = np.zeros(n_bins, dtype=np.int64)
     tp_cnt = np.zeros((len(RAYIOU_THRESHOLDS), n_bins), dtype=np.int64)
-    for gt, pred, org in zip(gts, preds, origins, strict=True):
+    ave_sum = np.zeros(_FREE + 1, dtype=np.float64)
+    ave_count = np.zeros(_FREE + 1, dtype=np.int64)
+    for i, (gt, pred, org) in enumerate(zip(gts, preds, origins, strict=True)):
         gt = _check_labels(gt, "gt")
         pred = _check_labels(pred, "pred")
-        gt_label, gt_dist = cast_rays_exact(gt, org)
-        pred_label, pred_dist = cast_rays_exact(pred, org)
+        gt_label, gt_dist, gt_voxel = cast_rays_exact(gt, org, voxels=True)
+        pred_label, pred_dist, pred_voxel = cast_rays_exact(pred, org, voxels=True)
         valid = gt_label != _FREE
         gt_label, gt_dist = gt_label[valid], gt_dist[valid]
         pred_label, pred_dist = pred_label[valid], pred_dist[valid]
@@ -259,16 +306,45 @@ def rayiou(
         err = np.abs(pred_dist - gt_dist)
         for j, threshold in enumerate(RAYIOU_THRESHOLDS):
             tp_cnt[j] += np.bincount(gt_label[same & (err < threshold)], minlength=n_bins)
+        if with_flow:
+            gt_flow = _ray_flow(gt_flows[i], gt_voxel[valid], "gt_flows")
+            pred_flow = _ray_flow(pred_flows[i], pred_voxel[valid], "pred_flows")
+            tp = same & (err < AVE_THRESHOLD)
+            for c in _FLOW_IDS:
+                rays = tp & (gt_label == c)
+                if rays.any():
+                    # float32 norms summed in float32 per frame and class, then added in float64, as the reference.
+                    errors = np.linalg.norm(gt_flow[rays] - pred_flow[rays], axis=1)
+                    ave_sum[c] += np.sum(errors)
+                    ave_count[c] += errors.shape[0]
 
-    return rayiou_from_counts(gt_cnt[: _FREE + 1], pred_cnt[: _FREE + 1], tp_cnt[:, : _FREE + 1])
+    counts = (gt_cnt[: _FREE + 1], pred_cnt[: _FREE + 1], tp_cnt[:, : _FREE + 1])
+    return rayiou_from_counts(*counts, *((ave_sum, ave_count) if with_flow else ()))
 
 
-def rayiou_from_counts(gt_cnt: np.ndarray, pred_cnt: np.ndarray, tp_cnt: np.ndarray) -> dict:
-    """RayIoU from ray counts summed over frames (the metric is a ratio of sums, so frames can be counted apart).
+def _ray_flow(flow: np.ndarray, voxel: np.ndarray, name: str) -> np.ndarray:
+    """``(R, 2)`` float32 flow of the voxels ``(R, 3)`` the rays stop in."""
+    flow = np.asarray(flow)
+    if flow.shape != (*_GRID_SHAPE, 2) or flow.dtype.kind != "f":
+        raise ValueError(f"{name} must be float {(*_GRID_SHAPE, 2)} arrays, got {flow.dtype} {flow.shape}")
+    return flow[voxel[:, 0], voxel[:, 1], voxel[:, 2]].astype(np.float32)
+
+
+def rayiou_from_counts(
+    gt_cnt: np.ndarray,
+    pred_cnt: np.ndarray,
+    tp_cnt: np.ndarray,
+    ave_sum: np.ndarray | None = None,
+    ave_count: np.ndarray | None = None,
+) -> dict:
+    """RayIoU (and with velocity errors mAVE and OccScore) from ray counts summed over frames (the metrics are
+    ratios of sums, so frames can be counted apart).
 
     Args:
         gt_cnt, pred_cnt: ``(18,)`` int64 valid rays per GT / predicted class (index 17 = free).
         tp_cnt: ``(3, 18)`` int64 true positives per threshold of :data:`RAYIOU_THRESHOLDS`.
+        ave_sum, ave_count: ``(18,)`` summed velocity errors (m/s) and their true-positive rays per class at
+            :data:`AVE_THRESHOLD`; None: no flow.
 
     Returns:
         The dict of :func:`rayiou`.
@@ -285,7 +361,25 @@ def rayiou_from_counts(gt_cnt: np.ndarray, pred_cnt: np.ndarray, tp_cnt: np.ndar
         "pred": np.asarray(pred_cnt).tolist(),
         "tp": {key: np.asarray(tp_cnt[j]).tolist() for j, key in enumerate(keys)},
     }
+    if ave_sum is not None:
+        ave = np.full(_NUM_CLASSES, np.nan)
+        for c in _FLOW_IDS:
+            if ave_count[c]:
+                ave[c] = ave_sum[c] / ave_count[c]
+        result["mave"] = _nanmean(ave)
+        result["occ_score"] = occ_score(result["rayiou"], result["mave"])
+        result["ave_per_class"] = [float(v) for v in ave]
+        result["counts"]["ave_sum"] = [float(v) for v in ave_sum]
+        result["counts"]["ave_count"] = np.asarray(ave_count).tolist()
     return result
+
+
+def occ_score(rayiou: float, mave: float) -> float:
+    """The challenge's ``0.9 RayIoU + 0.1 max(1 - mAVE, 0)`` (RayIoU as a fraction); NaN when mAVE is (no true
+    positive of a moving class), as the reference's ``max(nan, 0.0)`` gives."""
+    if math.isnan(mave):
+        return float("nan")
+    return 0.9 * rayiou + 0.1 * max(1.0 - mave, 0.0)
 
 
 def _nanmean(values: np.ndarray) -> float:
