@@ -27,7 +27,7 @@ from occkit.data.labels import label_file, read_labels
 from occkit.data.names import path_under, safe_name
 from occkit.label_space import OCC3D_SPACE, LabelSpace, label_space
 from occkit.metrics.confusion import OccupancyMetric
-from occkit.metrics.rayiou import RAYIOU_THRESHOLDS, rayiou, rayiou_from_counts
+from occkit.metrics.rayiou import FLOW_CLASSES, RAYIOU_THRESHOLDS, rayiou, rayiou_from_counts
 
 __all__ = [
     "write_prediction",
@@ -275,8 +275,9 @@ def evaluate_predictions(
     Returns:
         ``miou``, ``iou``, ``per_class_iou`` {class: float or None}, ``label_space``, ``mask``, ``frames``,
         ``missing_predictions`` and with RayIoU ``rayiou``, ``rayiou@1``, ``rayiou@2``, ``rayiou@4``, and when the
-        predictions carry ``flow`` also ``mave`` (m/s) and ``occ_score`` (the CVPR 2024 challenge's, read against
-        the ground truth's ``flow``); fractions in [0, 1], NaN as None.
+        predictions carry ``flow`` also ``mave`` (m/s), ``occ_score`` (the CVPR 2024 challenge's, read against
+        the ground truth's ``flow``), ``ave_per_class`` and ``ave_rays`` (the true-positive rays each moving class's
+        AVE averages over); fractions in [0, 1], NaN as None.
 
     Raises:
         FileNotFoundError: a folder or the origins file does not exist.
@@ -350,6 +351,11 @@ def evaluate_predictions(
         summary = rayiou_from_counts(ray_gt, ray_pred, ray_tp, *flow)
         keys = ("rayiou", "rayiou@1", "rayiou@2", "rayiou@4") + (("mave", "occ_score") if flow else ())
         result.update({key: _finite_or_none(summary[key]) for key in keys})
+        if flow:
+            ids = [space.taxonomy.index(name) for name in FLOW_CLASSES]
+            result["ave_per_class"] = {name: _finite_or_none(summary["ave_per_class"][c])
+                                       for name, c in zip(FLOW_CLASSES, ids, strict=True)}  # fmt: skip
+            result["ave_rays"] = {name: int(ave_count[c]) for name, c in zip(FLOW_CLASSES, ids, strict=True)}
     return result
 
 

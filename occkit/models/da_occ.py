@@ -70,7 +70,7 @@ from occkit.models.base import FIXED_CALIBRATION_RETIRED, Architecture, Occupanc
 from occkit.models.bev_encoder import BevEncoder, BevEncoderConfig
 from occkit.models.dac import DACBlock
 from occkit.models.heads.depth import DepthNet, DepthNetConfig, camera_parameters, lidar_target
-from occkit.models.heads.flow import FlowHead, FlowHeadConfig
+from occkit.models.heads.flow import FlowHead, FlowHeadConfig, with_flow_head
 from occkit.models.heads.occupancy import OccupancyHead, OccupancyHeadConfig
 from occkit.models.image_encoder import ImageEncoder, ImageEncoderConfig
 from occkit.models.temporal import HISTORY_INPUTS, TemporalConfig, TemporalFusion
@@ -546,23 +546,16 @@ def da_occ_tiny_temporal() -> Experiment:
     return Experiment("da_occ", model, cpu_data(DATA), dataclasses.replace(CPU_TRAIN, sampler="streams"))
 
 
-def _with_flow(experiment: Experiment) -> Experiment:
-    """``experiment`` with a flow head on its occupancy head's input, trained on labels that carry flow."""
-    channels = experiment.model.occupancy.in_channels
-    model = dataclasses.replace(experiment.model, flow=FlowHeadConfig(in_channels=channels, hidden_channels=channels))
-    return dataclasses.replace(experiment, model=model, data=dataclasses.replace(experiment.data, flow=True))
-
-
 def da_occ_tiny_flow() -> Experiment:
     """da_occ_tiny with an occupancy flow head (two velocities per voxel, channel-to-height, L1 on the occupied
     voxels), trained on labels that carry flow (``data.flow``): the single-frame side of the flow comparison."""
-    return _with_flow(da_occ_tiny())
+    return with_flow_head(da_occ_tiny())
 
 
 def da_occ_tiny_temporal_flow() -> Experiment:
     """da_occ_tiny_temporal with the flow head of da_occ_tiny_flow: its recurrent BEV history lets the head see
     motion, which a single frame shows only through poses and context."""
-    return _with_flow(da_occ_tiny_temporal())
+    return with_flow_head(da_occ_tiny_temporal())
 
 
 ARCHITECTURE = Architecture(

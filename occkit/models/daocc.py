@@ -29,7 +29,7 @@ from occkit.label_space import OCC3D_SPACE, SURROUNDOCC_SPACE, LabelSpace
 from occkit.models.base import Architecture, CameraInputs, Deployment, OccupancyModel, camera_images
 from occkit.models.bev_encoder import BevEncoder, BevEncoderConfig, ConvFuser
 from occkit.models.heads.center import CenterHead, CenterHeadConfig
-from occkit.models.heads.flow import FlowHead, FlowHeadConfig
+from occkit.models.heads.flow import FlowHead, FlowHeadConfig, with_flow_head
 from occkit.models.heads.occupancy import OccupancyHead, OccupancyHeadConfig, occupancy_prediction
 from occkit.models.image_encoder import ImageEncoder, ImageEncoderConfig
 from occkit.models.lidar_encoder import LidarEncoder, LidarEncoderConfig
@@ -449,12 +449,20 @@ def daocc_surroundocc_tiny() -> Experiment:
     return Experiment("daocc", model, cpu_data(_data(space=space)), CPU_TRAIN)
 
 
+def daocc_tiny_flow() -> Experiment:
+    """daocc_tiny with an occupancy flow head (two velocities per voxel, channel-to-height on the range-extended BEV,
+    L1 on the occupied voxels), trained on labels that carry flow (``data.flow``). Its LiDAR sweeps carry their time
+    lag, so moving objects show their motion within one sample (``data.sweeps = 0`` gives the key frame alone)."""
+    return with_flow_head(daocc_tiny())
+
+
 ARCHITECTURE = Architecture(
     name="daocc",
     config=DAOccConfig,
     model=DAOcc,
     presets={f.__name__: f for f in (daocc, daocc_no_mask, daocc_24e, daocc_no_detection, daocc_no_range_extension,
-                                      daocc_surroundocc, daocc_lidar, daocc_tiny, daocc_surroundocc_tiny)},
+                                      daocc_surroundocc, daocc_lidar, daocc_tiny, daocc_surroundocc_tiny,
+                                      daocc_tiny_flow)},
     stages={
         "image_encoder": ("image_encoder",),
         "view_transform": ("view_transform",),

@@ -27,7 +27,7 @@ from occkit.losses import depth_bce
 from occkit.models.base import Architecture, OccupancyModel, camera_images
 from occkit.models.bev_encoder import BevEncoder, BevEncoderConfig
 from occkit.models.heads.depth import lidar_target
-from occkit.models.heads.flow import FlowHead, FlowHeadConfig
+from occkit.models.heads.flow import FlowHead, FlowHeadConfig, with_flow_head
 from occkit.models.heads.occupancy import OccupancyHead, OccupancyHeadConfig
 from occkit.models.image_encoder import ImageEncoder, ImageEncoderConfig
 from occkit.models.temporal import HISTORY_INPUTS, TemporalConfig, TemporalFusion
@@ -232,9 +232,7 @@ def flashocc_tiny_flow() -> Experiment:
     """flashocc_tiny with an occupancy flow head (two velocities per voxel, channel-to-height, L1 on the occupied
     voxels), trained on labels that carry flow (``data.flow``, which the synthetic world writes): the CVPR 2024
     occupancy-and-flow task at CPU size, scored with mAVE and OccScore."""
-    base = flashocc_tiny()
-    model = dataclasses.replace(base.model, flow=FlowHeadConfig(in_channels=32, hidden_channels=32))
-    return dataclasses.replace(base, model=model, data=dataclasses.replace(base.data, flow=True))
+    return with_flow_head(flashocc_tiny())
 
 
 ARCHITECTURE = Architecture(

@@ -9,14 +9,16 @@ an occupied voxel.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 from torch import Tensor, nn
 
 from occkit.classes import OCC3D
+from occkit.experiment import Experiment
 from occkit.models.heads.occupancy import channel_to_height
 
-__all__ = ["FlowHeadConfig", "FlowHead"]
+__all__ = ["FlowHeadConfig", "FlowHead", "with_flow_head"]
 
 
 @dataclass(frozen=True)
@@ -61,3 +63,11 @@ class FlowHead(nn.Module):
         if not occupied.any():
             return flow.sum() * 0.0
         return self.cfg.loss_weight * (flow[occupied] - target[occupied]).abs().mean()
+
+
+def with_flow_head(experiment: Experiment) -> Experiment:
+    """``experiment`` with a flow head as wide as its occupancy head, reading what that head reads, and data whose
+    labels carry flow (``data.flow``): how the zoo's ``*_flow`` entries are made."""
+    channels = experiment.model.occupancy.in_channels
+    model = dataclasses.replace(experiment.model, flow=FlowHeadConfig(in_channels=channels, hidden_channels=channels))
+    return dataclasses.replace(experiment, model=model, data=dataclasses.replace(experiment.data, flow=True))
