@@ -309,7 +309,9 @@ def _add_eval_preds(parser: argparse.ArgumentParser) -> None:
         default=None,
         help="visibility mask for mIoU/IoU (default: the benchmark's, camera for Occ3D, none for SurroundOcc)",
     )
-    parser.add_argument("--rayiou", action="store_true", help="also compute RayIoU (SparseOcc protocol)")
+    parser.add_argument("--rayiou", action="store_true",
+                        help="also compute RayIoU (SparseOcc protocol), and mAVE and OccScore when the predictions "
+                             "carry flow")  # fmt: skip
     parser.add_argument(
         "--ray-origins", type=Path, metavar="FILE.npz", help="RayIoU ray origins: token -> (T, 3) ego metres"
     )
@@ -890,14 +892,14 @@ COMMANDS: dict[str, Command] = {
     "label": ("build occupancy labels and visibility masks from a dataset's LiDAR sweeps, lidarseg and boxes",
               _add_label, _run_label),
     "eval-preds": (
-        "score Occ3D predictions against a gts/ tree: mIoU, IoU and RayIoU",
+        "score Occ3D predictions against a gts/ tree: mIoU, IoU, RayIoU (and mAVE / OccScore when they carry flow)",
         _add_eval_preds,
         _run_eval_preds,
     ),
     "train": ("train a model: checkpoints, logs, plots, validation (torchrun for several processes)", _add_train,
               _run_train),
-    "eval": ("score a checkpoint on a dataset split: mIoU, IoU, RayIoU, per-class table and plots", _add_eval,
-             _run_eval),
+    "eval": ("score a checkpoint on a dataset split: mIoU, IoU, RayIoU (mAVE, OccScore with a flow head), per-class "
+             "table and plots", _add_eval, _run_eval),
     "predict": ("write Occ3D-format <token>.npz predictions of a checkpoint", _add_predict, _run_predict),
     "convert": ("convert an official FlashOcc / BEVDet or DAOcc checkpoint to occkit weights (.safetensors) with "
                 "a report", _add_convert, _run_convert),
