@@ -359,7 +359,6 @@ def augment_occupancy(
     return resampled.numpy() if is_numpy else resampled
 
 
-# --------------------------------------------------------------------------------------------- sensor failures
 def augment_flow(
     flow: np.ndarray, semantics: np.ndarray, occ_aug: Tensor, grid: VoxelGrid, fill: int, empty: int
 ) -> np.ndarray:
@@ -410,6 +409,7 @@ def _first_sources(semantics: np.ndarray, matrix: Tensor, grid: VoxelGrid, fill:
     return torch.where(inside.gather(1, first[:, None])[:, 0], chosen, -1).numpy()
 
 
+# --------------------------------------------------------------------------------------------- sensor failures
 def drop_cameras(
     images: Tensor, drop: Sequence[int] | float, rng: np.random.Generator | None = None
 ) -> tuple[Tensor, Tensor]:
