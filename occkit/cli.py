@@ -879,6 +879,80 @@ def _run_viz(args: argparse.Namespace) -> int:
     return 0
 
 
+# ----------------------------------------------------------------------------------------------------- view
+def _add_view(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--data", type=Path, required=True, help="dataset root (nuScenes layout)")
+    parser.add_argument("--split", default="val", help="split the scene belongs to (default val)")
+    parser.add_argument("--version", default="v1.0-synth", help="table folder under --data (default v1.0-synth)")
+    parser.add_argument("--scene", default=None, metavar="NAME", help="scene to show (default: the split's first)")
+    parser.add_argument("--frames", type=integer(1), default=None, metavar="N",
+                        help="only the scene's first N key frames (default: all)")
+    parser.add_argument("--label-space", choices=LABEL_SPACE_NAMES, default=None,
+                        help="labels and predictions to show (default: the checkpoint's, else occ3d)")
+    predictions = parser.add_mutually_exclusive_group()
+    predictions.add_argument("--pred", type=Path, metavar="DIR",
+                             help="folder of <token>.npz predictions (as occkit predict writes them)")
+    predictions.add_argument("--ckpt", type=Path, metavar="FILE", help="predict on the fly with this checkpoint")
+    parser.add_argument("--device", default="cpu", help="where --ckpt's model runs (default cpu)")
+    sink = parser.add_mutually_exclusive_group()
+    sink.add_argument("--save", type=Path, metavar="FILE.rrd",
+                      help="write the recording to FILE.rrd (open it with: rerun FILE.rrd) instead of spawning the "
+                           "viewer")  # fmt: skip
+    sink.add_argument("--serve", action="store_true",
+                      help="serve the web viewer over HTTP (for a browser or a remote machine) until Ctrl-C")
+    parser.add_argument("--web-port", type=integer(1, 65535), default=9090,
+                        help="HTTP port of the web viewer with --serve (default 9090)")
+    parser.add_argument("--grpc-port", type=integer(1, 65535), default=9876,
+                        help="port of the recording's gRPC server with --serve (default 9876)")
+
+
+def _run_view(args: argparse.Namespace) -> int:
+    import time
+
+    input_folder(args.data, "--data")
+    if args.pred is not None:
+        input_folder(args.pred, "--pred")
+    if args.ckpt is not None:
+        input_file(args.ckpt, "--ckpt")
+    if args.save is not None:
+        output_file(args.save, "--save")
+        if args.save.suffix != ".rrd":
+            raise UsageError(f"--save {args.save} must be a .rrd file")
+    check_device(args.device)
+    try:
+        from occkit.viz.recording import ViewConfig, new_recording, open_scene, record_scene, start_sink
+    except ModuleNotFoundError as error:
+        if error.name != "rerun":
+            raise
+        raise UsageError('occkit view needs the rerun viewer, an optional extra: pip install -e ".[viewer]"') from None
+    config = ViewConfig(data=str(args.data), split=args.split, version=args.version, scene=args.scene,
+                        frames=args.frames, pred=None if args.pred is None else str(args.pred),
+                        ckpt=None if args.ckpt is None else str(args.ckpt), label_space=args.label_space,
+                        device=args.device)  # fmt: skip
+    scene = open_scene(config)
+    recording = new_recording()
+    address = start_sink(recording, scene.blueprint(), save=args.save, serve=args.serve, web_port=args.web_port,
+                         grpc_port=args.grpc_port)  # fmt: skip
+    start = time.perf_counter()
+    frames = record_scene(scene, recording, progress=print)
+    recording.flush()
+    seconds = time.perf_counter() - start
+    if args.save is not None:
+        recording.disconnect()  # closes the file
+        print(f"wrote {len(frames)} frames of {scene.name} to {args.save} ({args.save.stat().st_size / 1e6:.1f} MB, "
+              f"{seconds:.1f} s); open it with: rerun {args.save}")
+        return 0
+    if address is None:
+        print(f"sent {len(frames)} frames of {scene.name} to the viewer ({seconds:.1f} s)")
+        return 0
+    print(f"serving {len(frames)} frames of {scene.name}: open {address} in a browser (Ctrl-C stops the server)")
+    try:
+        while True:
+            time.sleep(3600)
+    except KeyboardInterrupt:
+        return 0
+
+
 Command = tuple[str, Callable[[argparse.ArgumentParser], None], Callable[[argparse.Namespace], int]]
 
 COMMANDS: dict[str, Command] = {
@@ -911,6 +985,8 @@ COMMANDS: dict[str, Command] = {
                    _add_robustness, _run_robustness),
     "viz": ("render ground truth, predictions and cameras with projected LiDAR / voxels to PNGs and a page",
             _add_viz, _run_viz),
+    "view": ("one scene in rerun's interactive 3D viewer: cameras, LiDAR, boxes, trajectory, occupancy, predictions "
+             "and their errors on a timeline", _add_view, _run_view),
     "demo": ("the whole system on a laptop: synthetic world, train two tiny models, evaluate, render, report",
              _add_demo, _run_demo),
 }

@@ -1,6 +1,7 @@
-"""Headless renders of occupancy, predictions and cameras: PNG files and a page that gathers them.
+"""Headless renders of occupancy, predictions and cameras: PNG files and a page that gathers them; and recordings
+for rerun's interactive 3D viewer.
 
-Everything draws with matplotlib's Agg canvas, so no display (X server) is ever needed, and nothing here changes the
+The renders draw with matplotlib's Agg canvas, so no display (X server) is ever needed, and nothing here changes the
 global pyplot backend of an interactive session.
 
 - :mod:`occkit.viz.palette`: the Occ3D class colours as arrays, class legends.
@@ -10,4 +11,6 @@ global pyplot backend of an interactive session.
 - :mod:`occkit.viz.cameras`: the six surround cameras with projected LiDAR points or occupied voxels.
 - :mod:`occkit.viz.page`: a Markdown and an HTML page with the PNGs of a run.
 - :mod:`occkit.viz.run`: all of the above for frames of a dataset split (what ``occkit viz`` calls).
+- :mod:`occkit.viz.recording`: scenes, labels and predictions as a rerun recording on a timeline (what
+  ``occkit view`` calls; needs the ``viewer`` extra, rerun-sdk).
 """
