@@ -34,6 +34,7 @@ import uuid
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from urllib.parse import quote
 
 import numpy as np
 import rerun as rr
@@ -560,7 +561,7 @@ def start_sink(recording: rr.RecordingStream, blueprint: rrb.Blueprint, save: st
         # A scene of real data is a few hundred MB: the server keeps all of it for viewers that connect later.
         address = recording.serve_grpc(grpc_port=grpc_port, default_blueprint=blueprint, server_memory_limit="25%")
         rr.serve_web_viewer(web_port=web_port, open_browser=False, connect_to=address)
-        return f"http://localhost:{web_port}/?url={address}"
+        return f"http://localhost:{web_port}/?url={quote(address, safe='')}"
     recording.spawn(default_blueprint=blueprint)
     return None
 
