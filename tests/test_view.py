@@ -9,6 +9,7 @@ from collections import defaultdict
 from pathlib import Path
 
 import numpy as np
+import pyarrow as pa
 import pytest
 
 from occkit.classes import OCC3D
@@ -24,19 +25,19 @@ needs_rerun = pytest.mark.skipif(importlib.util.find_spec("rerun") is None, reas
 
 @pytest.fixture(scope="module")
 def data(tmp_path_factory) -> Path:
-    """2 scenes x 2 key frames, the six cameras at 176 x 99: scene-0002 is the val split."""
+    """One scene of 2 key frames, the six cameras at 176 x 99: scene-0001, the train split."""
     from occkit.sim.generate import SimConfig, simulate_dataset
 
     root = tmp_path_factory.mktemp("view") / "data"
-    simulate_dataset(SimConfig(scenes=2, frames=2, seed=3, image_size=(176, 99)), root)
+    simulate_dataset(SimConfig(scenes=1, frames=2, seed=3, image_size=(176, 99)), root)
     return root
 
 
-def _val_labels(root: Path) -> dict[str, dict[str, np.ndarray]]:
-    """token -> the label file's ``semantics`` and ``mask_camera``, for the val scene's frames in time order."""
+def _scene_labels(root: Path) -> dict[str, dict[str, np.ndarray]]:
+    """token -> the label file's ``semantics`` and ``mask_camera``, for the scene's frames in time order."""
     from occkit.data.dataset import DatasetConfig, OccupancyDataset
 
-    listing = OccupancyDataset(DatasetConfig(root=str(root), split="val", cameras=(), sweeps=-1, boxes=False))
+    listing = OccupancyDataset(DatasetConfig(root=str(root), split="train", cameras=(), sweeps=-1, boxes=False))
     frames = {}
     for record in sorted(listing.records, key=lambda record: record.index_in_scene):
         with np.load(listing.label_path(record)) as labels:
@@ -44,8 +45,9 @@ def _val_labels(root: Path) -> dict[str, dict[str, np.ndarray]]:
     return frames
 
 
-def _read(path: Path) -> dict[str, dict[str, dict[int, list]]]:
-    """entity -> component column -> frame -> the logged value, read back from the recording file."""
+def _read(path: Path) -> dict[str, dict[str, dict[int, pa.ListScalar]]]:
+    """entity -> component column -> frame -> the logged values (an Arrow list: ``len``, ``.values``, ``.as_py()``),
+    read back from the recording file."""
     from rerun.chunk import RrdReader
 
     found: dict = defaultdict(lambda: defaultdict(dict))
@@ -56,8 +58,8 @@ def _read(path: Path) -> dict[str, dict[str, dict[int, list]]]:
         frames = table.column("frame").to_pylist()
         for name in table.schema.names:
             if ":" in name:  # a component column, "Archetype:field"
-                for frame, value in zip(frames, table.column(name).to_pylist(), strict=True):
-                    found[chunk.entity_path][name][frame] = value
+                for row, frame in enumerate(frames):
+                    found[chunk.entity_path][name][frame] = table.column(name)[row]
     return dict(found)
 
 
@@ -90,11 +92,12 @@ def _write_predictions(labels: dict, folder: Path) -> dict[str, dict[str, int]]:
 def test_the_recording_holds_every_layer_counted_as_the_files(data, tmp_path, capsys):
     from occkit.viz.recording import ERRORS
 
-    labels = _val_labels(data)
+    labels = _scene_labels(data)
     errors = _write_predictions(labels, tmp_path / "pred")
     path = tmp_path / "view" / "scene.rrd"
-    assert main(["view", "--data", str(data), "--pred", str(tmp_path / "pred"), "--save", str(path)]) == 0
-    assert f"wrote 2 frames of scene-0002 to {path}" in capsys.readouterr().out
+    assert main(["view", "--data", str(data), "--split", "train", "--pred", str(tmp_path / "pred"), "--save",
+                 str(path)]) == 0  # fmt: skip
+    assert f"wrote 2 frames of scene-0001 to {path}" in capsys.readouterr().out
     found = _read(path)
     cameras = [f"{EGO}/cameras/{camera}" for camera in CAMERAS]
     layers = {role: f"{EGO}/occupancy/{role}" for role in ("gt", "gt_camera", "prediction", "prediction_camera",
@@ -108,24 +111,25 @@ def test_the_recording_holds_every_layer_counted_as_the_files(data, tmp_path, ca
         assert voxels["gt"] == _occupied(semantics) and voxels["gt_camera"] == _occupied(semantics, mask)
         # One car voxel freed, one free voxel filled: as many occupied voxels as in the ground truth.
         assert voxels["prediction"] == voxels["gt"] and voxels["prediction_camera"] == voxels["gt_camera"]
-        codes = np.array(found[layers["errors"]]["Boxes3D:class_ids"][frame])
+        codes = found[layers["errors"]]["Boxes3D:class_ids"][frame].values.to_numpy()
         assert {name: int(np.count_nonzero(codes == code)) for name, code in ERRORS.items()} == errors[token]
         assert voxels["errors"] == sum(errors[token].values())
-        classes = found[layers["gt_camera"]]["Boxes3D:class_ids"][frame]
+        classes = found[layers["gt_camera"]]["Boxes3D:class_ids"][frame].values.to_numpy()
         assert np.array_equal(np.sort(classes), np.sort(semantics[(semantics != FREE) & mask]))
         for camera in cameras:  # one image per camera and frame, with its pinhole
-            assert len(found[camera]["EncodedImage:blob"][frame]) == 1 and found[camera]["Pinhole:image_from_camera"]
+            logged = found[camera]
+            assert len(logged["EncodedImage:blob"][frame]) == len(logged["Pinhole:image_from_camera"][frame]) == 1
         assert len(found[f"{EGO}/lidar/points"]["Points3D:positions"][frame]) > 1000
-        assert 0.0 <= found["/scores/miou"]["Scalars:scalars"][frame][0] < 1.0
+        assert 0.0 <= found["/scores/miou"]["Scalars:scalars"][frame].as_py()[0] < 1.0
 
 
 @needs_rerun
 def test_a_batch_logs_without_image_files_as_the_network_sees_it(data, tmp_path):
     from occkit.data.collate import collate
     from occkit.data.dataset import DatasetConfig, OccupancyDataset
-    from occkit.viz.recording import log_batch, log_setup, new_recording, set_frame
+    from occkit.viz.recording import log_batch, log_prediction, log_setup, new_recording, set_frame
 
-    dataset = OccupancyDataset(DatasetConfig(root=str(data), split="val", sweeps=0))
+    dataset = OccupancyDataset(DatasetConfig(root=str(data), sweeps=0))
     batch = collate([dataset[0], dataset[1]])
     recording = new_recording()
     path = tmp_path / "batch.rrd"
@@ -133,15 +137,20 @@ def test_a_batch_logs_without_image_files_as_the_network_sees_it(data, tmp_path)
     log_setup(recording=recording)
     set_frame(0, recording=recording)
     counts = log_batch(batch, 1, recording=recording)
+    semantics, mask = batch.voxel_semantics[1], batch.mask_camera[1]
+    errors = log_prediction(semantics, semantics, mask, recording=recording)
     recording.disconnect()
     with np.load(dataset.label_path(dataset.records[1])) as labels:
         assert counts["gt"] == _occupied(labels["semantics"])
     found = _read(path)
+    # A perfect prediction: an empty error layer, without the half size that would draw a box at the origin.
+    assert errors["wrong_class"] == errors["missed"] == errors["false_positive"] == 0
+    assert len(found[f"{EGO}/occupancy/errors"]["Boxes3D:half_sizes"][0]) == 0
     assert counts["images"] == 0 and len(found[f"{EGO}/occupancy/gt"]["Boxes3D:centers"][0]) == counts["gt"]
     camera = found[f"{EGO}/cameras/CAM_FRONT"]
     # Without image files a camera is the pinhole of the augmented image the network sees.
     assert "EncodedImage:blob" not in camera
-    assert camera["Pinhole:resolution"][0] == [[batch.images.shape[-1], batch.images.shape[-2]]]
+    assert camera["Pinhole:resolution"][0].as_py() == [[batch.images.shape[-1], batch.images.shape[-2]]]
 
 
 @needs_rerun
@@ -163,7 +172,8 @@ def test_a_checkpoint_predicts_the_frames_in_order(data, tmp_path):
                               "experiment": experiment.to_dict(), "model": model.state_dict(), "ema": None},
                              tmp_path / "run" / "model.pt")  # fmt: skip
     path = tmp_path / "ckpt.rrd"
-    assert main(["view", "--data", str(data), "--ckpt", str(checkpoint), "--frames", "1", "--save", str(path)]) == 0
+    assert main(["view", "--data", str(data), "--split", "train", "--ckpt", str(checkpoint), "--frames", "1", "--save",
+                 str(path)]) == 0  # fmt: skip
     found = _read(path)
     assert set(found[f"{EGO}/occupancy/prediction"]["Boxes3D:centers"]) == {0}
     assert f"{EGO}/occupancy/errors" in found
@@ -171,10 +181,11 @@ def test_a_checkpoint_predicts_the_frames_in_order(data, tmp_path):
 
 def test_an_unknown_scene_is_one_line_naming_the_scenes(data, tmp_path, capsys):
     pytest.importorskip("rerun")
-    assert main(["view", "--data", str(data), "--scene", "scene-0001", "--save", str(tmp_path / "x.rrd")]) == 2
+    argv = ["view", "--data", str(data), "--split", "train", "--scene", "scene-0002", "--save", str(tmp_path / "x.rrd")]
+    assert main(argv) == 2
     error = capsys.readouterr().err
     assert error.startswith("occkit view: error:") and error.count("\n") == 1
-    assert "no scene 'scene-0001'" in error and "its scenes: scene-0002" in error
+    assert "no scene 'scene-0002'" in error and "its scenes: scene-0001" in error
     assert not (tmp_path / "x.rrd").exists()
 
 
@@ -182,7 +193,7 @@ def test_an_unknown_scene_is_one_line_naming_the_scenes(data, tmp_path, capsys):
                                                     (["--pred", "{tmp}/none"], "--pred "),
                                                     (["--data", "{tmp}/none"], "--data ")])  # fmt: skip
 def test_options_are_checked_before_any_work(data, tmp_path, capsys, arguments, message):
-    options = {"--data": str(data), "--save": str(tmp_path / "x.rrd")}
+    options = {"--data": str(data), "--split": "train", "--save": str(tmp_path / "x.rrd")}
     options |= dict(zip(arguments[::2], [a.format(tmp=tmp_path) for a in arguments[1::2]], strict=True))
     assert main(["view", *[part for item in options.items() for part in item]]) == 2
     error = capsys.readouterr().err
@@ -194,7 +205,7 @@ def test_without_rerun_the_command_names_the_extra(data, tmp_path, capsys, monke
     for name in loaded:
         monkeypatch.delitem(sys.modules, name)
     monkeypatch.setitem(sys.modules, "rerun", None)  # `import rerun` fails as if it were not installed
-    assert main(["view", "--data", str(data), "--save", str(tmp_path / "x.rrd")]) == 2
+    assert main(["view", "--data", str(data), "--split", "train", "--save", str(tmp_path / "x.rrd")]) == 2
     error = capsys.readouterr().err
     assert error.count("\n") == 1 and 'pip install -e ".[viewer]"' in error
 

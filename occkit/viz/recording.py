@@ -173,9 +173,11 @@ def _log_voxels(entity: str, keep: np.ndarray, class_ids: np.ndarray, space: Lab
     index = np.argwhere(keep)
     size = np.asarray(grid.voxel_size, dtype=np.float32)
     centres = (index.astype(np.float32) + 0.5) * size + np.asarray(grid.lower, dtype=np.float32)
-    # One half size for all voxels: rerun repeats the last half size for the remaining centres. Class names show on
-    # hover: as labels on every voxel they would hide the scene.
-    rr.log(entity, rr.Boxes3D(centers=centres, half_sizes=[size / 2], class_ids=class_ids[keep].astype(np.uint16),
+    # One half size for all voxels: rerun repeats the last half size for the remaining centres (and would draw a
+    # box at the origin for a half size without a centre). Class names show on hover: as labels on every voxel they
+    # would hide the scene.
+    half_sizes = (size / 2)[None] if len(index) else np.zeros((0, 3), np.float32)
+    rr.log(entity, rr.Boxes3D(centers=centres, half_sizes=half_sizes, class_ids=class_ids[keep].astype(np.uint16),
                               fill_mode="solid", show_labels=False), recording=recording)  # fmt: skip
     return len(index)
 
@@ -250,7 +252,7 @@ def _log_cameras(batch: Batch, index: int, cameras: Sequence[str], image_files: 
         rr.log(entity, _transform(batch.cam2ego[index, i]), recording=recording)
         intrinsics = batch.intrinsics[index, i].double()
         if image_files is None:
-            # The network's view: the augmented image's pixels, whose normalised values are not shown.
+            # The pinhole of the augmented image the network sees (its normalised pixels are not drawn).
             height, width = batch.images.shape[-2:]
             intrinsics = batch.img_aug[index, i].double() @ intrinsics
         else:
@@ -272,6 +274,9 @@ def log_batch(batch: Batch, index: int = 0, space: LabelSpace | str = OCC3D_SPAC
     The batch's tensors are drawn in their own (augmented) frames under transforms that undo the augmentation, so
     everything lands in the un-augmented ego frame: points and boxes under ``lidar2ego @ inv(bev_aug)``, labels
     under ``inv(occ_aug)`` (SurroundOcc's LiDAR-frame labels: ``lidar2ego @ inv(bev_aug)``).
+
+    The points are all the batch holds for the sample (the key frame and the sweeps the dataset added), coloured by
+    their height in the ego frame.
 
     Args:
         batch: a collated batch (:func:`occkit.data.collate.collate`).
