@@ -30,6 +30,8 @@ prediction; :func:`record_scene` logs a whole scene of a dataset split, as ``occ
 from __future__ import annotations
 
 import dataclasses
+import shutil
+import sys
 import uuid
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -567,7 +569,10 @@ def start_sink(recording: rr.RecordingStream, blueprint: rrb.Blueprint, save: st
         address = recording.serve_grpc(grpc_port=grpc_port, default_blueprint=blueprint, server_memory_limit="25%")
         rr.serve_web_viewer(web_port=web_port, open_browser=False, connect_to=address)
         return f"http://localhost:{web_port}/?url={quote(address, safe='')}"
-    recording.spawn(default_blueprint=blueprint)
+    # The viewer the SDK installed beside this interpreter, also when its environment is not on PATH (rerun looks
+    # on PATH only).
+    viewer = shutil.which("rerun", path=str(Path(sys.executable).parent))
+    rr.spawn(default_blueprint=blueprint, executable_path=viewer, recording=recording)
     return None
 
 
