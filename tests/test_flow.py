@@ -147,13 +147,19 @@ def test_flow_needs_occupancy_and_a_label_file_with_flow(world_root, tmp_path):
 
 # ------------------------------------------------------------------------------------------ head
 def test_the_flow_loss_is_an_l1_over_the_occupied_voxels_only():
-    head = FlowHead(FlowHeadConfig(in_channels=4, hidden_channels=4, height=2, loss_weight=0.5))
+    config = FlowHeadConfig(in_channels=4, hidden_channels=4, height=2, loss_weight=0.5, balanced=False)
+    head = FlowHead(config)
     labels = torch.full((1, 2, 2, 2), FREE, dtype=torch.uint8)
-    labels[0, 0, 0, 0], labels[0, 1, 1, 1], labels[0, 1, 0, 1] = 4, 11, 255  # car, road, ignored
+    labels[0, 0, 0, 0], labels[0, 1, 1, 1], labels[0, 0, 1, 1], labels[0, 1, 0, 1] = 4, 11, 13, 255  # ignored last
     flow = torch.zeros(1, 2, 2, 2, 2)
+    flow[0, 1, 1, 1] = torch.tensor([0.5, 0.5])
     target = torch.full((1, 2, 2, 2, 2), 100.0)  # huge everywhere that must not count
-    target[0, 0, 0, 0], target[0, 1, 1, 1] = torch.tensor([3.0, -1.0]), torch.tensor([0.0, 0.0])
-    assert float(head.loss(flow, target, labels)) == pytest.approx(0.5 * (3 + 1 + 0 + 0) / 4)
+    target[0, 0, 0, 0], target[0, 1, 1, 1], target[0, 0, 1, 1] = torch.tensor([3.0, -1.0]), 0.0, 0.0
+    # One mean over the 3 occupied voxels and both components.
+    assert float(head.loss(flow, target, labels)) == pytest.approx(0.5 * (3 + 1 + 0.5 + 0.5) / 6)
+    # Balanced: the moving voxel's mean and the two static voxels' mean, averaged.
+    balanced = FlowHead(dataclasses.replace(config, balanced=True))
+    assert float(balanced.loss(flow, target, labels)) == pytest.approx(0.5 * ((3 + 1) / 2 + (0.5 + 0.5) / 4) / 2)
     out = head(torch.randn(1, 4, 2, 2))
     assert out.shape == (1, 2, 2, 2, 2)
     with pytest.raises(ValueError, match="data.flow = true"):

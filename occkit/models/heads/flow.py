@@ -12,6 +12,7 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass
 
+import torch
 from torch import Tensor, nn
 
 from occkit.classes import OCC3D
@@ -36,9 +37,14 @@ class FlowHeadConfig:
     ignore_index: int = OCC3D.ignore_index
     """Label of voxels without ground truth (left out of the loss)."""
     loss_weight: float = 1.0
-    """Weight of the L1 loss, a mean over the occupied voxels and both components. The challenge baseline's 0.25
-    averages over every voxel, free ones included (about ten times as many); over the occupied ones alone, 1.0 gives
-    the flow a weight the short CPU schedules learn from."""
+    """Weight of the L1 loss (means over voxels and both components). The challenge baseline's 0.25 averages over
+    every voxel, free ones included (about ten times as many); over the occupied ones alone, 1.0 gives the flow a
+    weight the short CPU schedules learn from."""
+    balanced: bool = True
+    """Average the L1 over the moving voxels (nonzero ground-truth flow) and over the static occupied ones apart, and
+    the two means equally; False: one mean over every occupied voxel. Moving voxels are a few percent of the occupied
+    ones (4 % on the synthetic world), and under one mean a short schedule learns to predict zero everywhere
+    (measured: ``daocc_tiny_flow``, 1000 steps, under 1e-4 m/s on cars and mAVE equal to the zero-flow baseline's)."""
 
 
 class FlowHead(nn.Module):
@@ -56,13 +62,19 @@ class FlowHead(nn.Module):
 
     def loss(self, flow: Tensor, target: Tensor | None, labels: Tensor) -> Tensor:
         """Weighted L1 of ``flow (B, X, Y, Z, 2)`` against ``target`` over the voxels ``labels (B, X, Y, Z)`` marks
-        occupied (neither free nor ignored); 0 (with a gradient path) when there is none."""
+        occupied (neither free nor ignored), balanced between moving and static voxels with ``balanced``; 0 (with a
+        gradient path) when there is none."""
         if target is None:
             raise ValueError("the flow loss needs batch.voxel_flow: set data.flow = true (labels with a flow array)")
         occupied = (labels != self.cfg.free_index) & (labels != self.cfg.ignore_index)
-        if not occupied.any():
+        groups = [occupied]
+        if self.cfg.balanced:
+            moving = occupied & (target != 0).any(dim=-1)
+            groups = [moving, occupied & ~moving]
+        means = [(flow[group] - target[group]).abs().mean() for group in groups if group.any()]
+        if not means:
             return flow.sum() * 0.0
-        return self.cfg.loss_weight * (flow[occupied] - target[occupied]).abs().mean()
+        return self.cfg.loss_weight * torch.stack(means).mean()
 
 
 def with_flow_head(experiment: Experiment) -> Experiment:
