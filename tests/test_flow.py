@@ -147,7 +147,7 @@ def test_flow_needs_occupancy_and_a_label_file_with_flow(world_root, tmp_path):
 
 # ------------------------------------------------------------------------------------------ head
 def test_the_flow_loss_is_an_l1_over_the_occupied_voxels_only():
-    config = FlowHeadConfig(in_channels=4, hidden_channels=4, height=2, loss_weight=0.5, balanced=False)
+    config = FlowHeadConfig(in_channels=4, height=2, loss_weight=0.5, balanced=False)
     head = FlowHead(config)
     labels = torch.full((1, 2, 2, 2), FREE, dtype=torch.uint8)
     labels[0, 0, 0, 0], labels[0, 1, 1, 1], labels[0, 0, 1, 1], labels[0, 1, 0, 1] = 4, 11, 13, 255  # ignored last
@@ -160,7 +160,7 @@ def test_the_flow_loss_is_an_l1_over_the_occupied_voxels_only():
     # Balanced: the moving voxel's mean and the two static voxels' mean, averaged.
     balanced = FlowHead(dataclasses.replace(config, balanced=True))
     assert float(balanced.loss(flow, target, labels)) == pytest.approx(0.5 * ((3 + 1) / 2 + (0.5 + 0.5) / 4) / 2)
-    out = head(torch.randn(1, 4, 2, 2))
+    out = head(torch.randn(1, 2, 2, 4))  # the occupancy head's per-cell features
     assert out.shape == (1, 2, 2, 2, 2)
     with pytest.raises(ValueError, match="data.flow = true"):
         head.loss(out, None, labels)

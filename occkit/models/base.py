@@ -63,7 +63,7 @@ class OccupancyModel(nn.Module, metaclass=abc.ABCMeta):
         single-frame models."""
         self.flow_head: FlowHead | None = None
         """The occupancy flow head (:mod:`occkit.models.heads.flow`, set by ``__init__`` when the config has
-        ``flow``); it reads what the occupancy head reads."""
+        ``flow``); it reads the occupancy head's per-cell features (:meth:`occupancy_and_flow`)."""
 
     @abc.abstractmethod
     def plan(self, batch: Batch) -> Any:
@@ -118,9 +118,13 @@ class OccupancyModel(nn.Module, metaclass=abc.ABCMeta):
         return prediction
 
     # ----------------------------------------------------------------------------------------------------- flow
-    def flow(self, features: Tensor) -> Tensor | None:
-        """The flow head's ``(B, X, Y, Z, 2)`` velocities from the occupancy head's input; None without a head."""
-        return None if self.flow_head is None else self.flow_head(features)
+    def occupancy_and_flow(self, occupancy_head: nn.Module, features: Tensor) -> tuple[Tensor, Tensor | None]:
+        """The occupancy head's logits ``(B, K, X, Y, Z)`` of ``features (B, C, X, Y)`` and, with a flow head, the
+        velocities ``(B, X, Y, Z, 2)`` from the same per-cell features; None without one."""
+        if self.flow_head is None:
+            return occupancy_head(features), None
+        columns = occupancy_head.columns(features)
+        return occupancy_head.logits(columns), self.flow_head(columns)
 
     def flow_losses(self, output: ModelOutput, batch: Batch) -> dict[str, Tensor]:
         """``{"flow": weighted L1}`` of a model with a flow head (:meth:`FlowHead.loss`); empty without one."""

@@ -206,7 +206,8 @@ class DirectionAwareOccConfig:
             "fusion_channels": (self.fusion_channels, self.bev.neck_channels, "bev.neck_channels"),
         }
         if self.flow is not None:
-            checks["flow.in_channels"] = (self.flow.in_channels, self.occupancy.in_channels, "occupancy.in_channels")
+            checks["flow.in_channels"] = (self.flow.in_channels, self.occupancy.hidden_channels,
+                                          "occupancy.hidden_channels")  # fmt: skip
         nets = {"depth_net": (self.depth_net, self.depth_bins), "height_net": (self.height_net, self.height_bins)}
         for name, (net, bins) in nets.items():
             if net is not None:
@@ -341,8 +342,8 @@ class DirectionAwareOcc(OccupancyModel):
             bev, state = self.temporal(bev, *(inputs[name] for name in HISTORY_INPUTS))
         bev = self._bev_decoder(self.bev_encoder(bev))  # F_BEV' (B, C', X, Y)
         if self.height_net is None:  # FlashOcc with the BEV DACs
-            return ModelOutput(occupancy=self.occupancy_head(bev), depth=depth, history_state=state,
-                               flow=self.flow(bev))  # fmt: skip
+            logits, flow = self.occupancy_and_flow(self.occupancy_head, bev)
+            return ModelOutput(occupancy=logits, depth=depth, history_state=state, flow=flow)
 
         height_logits, _ = self.height_net(features.flatten(0, 1), plan.camera_params)
         height = height_logits.softmax(dim=1).unflatten(0, (batch_size, cameras))  # (B, N, Z, h, w)
@@ -352,9 +353,8 @@ class DirectionAwareOcc(OccupancyModel):
         folded = sliced.reshape(batch_size, c, z, x, y).transpose(1, 2).reshape(batch_size, z * c, x, y)
         heights = F.interpolate(self.height_reduce(folded), size=bev.shape[-2:], mode="bilinear", align_corners=False)
 
-        fused = self.fuse(torch.cat([heights, bev], dim=1))
-        return ModelOutput(occupancy=self.occupancy_head(fused), depth=depth, height=height, history_state=state,
-                           flow=self.flow(fused))  # fmt: skip
+        logits, flow = self.occupancy_and_flow(self.occupancy_head, self.fuse(torch.cat([heights, bev], dim=1)))
+        return ModelOutput(occupancy=logits, depth=depth, height=height, history_state=state, flow=flow)
 
     def loss(self, output: ModelOutput, batch: Batch) -> dict[str, Tensor]:
         """DA-Occ's weighted loss terms: the occupancy CE and the scene-class affinities, the height BCE with a height

@@ -98,7 +98,8 @@ class DAOccConfig:
         if self.image is not None:
             expected["view.in_channels"] = (self.view.in_channels, self.image.neck_channels, "image.neck_channels")
         if self.flow is not None:
-            expected["flow.in_channels"] = (self.flow.in_channels, self.occupancy.in_channels, "occupancy.in_channels")
+            expected["flow.in_channels"] = (self.flow.in_channels, self.occupancy.hidden_channels,
+                                            "occupancy.hidden_channels")
         if self.detection is not None:
             expected["detection.in_channels"] = (self.detection.in_channels, self.bev.neck_channels,
                                                  "bev.neck_channels")
@@ -192,8 +193,8 @@ class DAOcc(OccupancyModel):
     def network(self, inputs: Mapping[str, Tensor], plan: FusionPlan, detect: bool | None = None) -> ModelOutput:
         """The occupancy logits, and the detection head's outputs in training or when ``detect`` is True."""
         bev = self.encode(inputs, plan)
-        extended = self.range_extension(bev, plan.range_grid)
-        output = ModelOutput(occupancy=self.occupancy_head(extended), flow=self.flow(extended))
+        logits, flow = self.occupancy_and_flow(self.occupancy_head, self.range_extension(bev, plan.range_grid))
+        output = ModelOutput(occupancy=logits, flow=flow)
         run_detection = self.training if detect is None else detect
         if run_detection and self.detection_head is not None:
             output.detection = self.detection_head(bev)

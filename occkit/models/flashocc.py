@@ -93,7 +93,8 @@ class FlashOccConfig:
             "occupancy.in_channels": (self.occupancy.in_channels, self.bev.neck_channels, "bev.neck_channels"),
         }  # fmt: skip
         if self.flow is not None:
-            checks["flow.in_channels"] = (self.flow.in_channels, self.occupancy.in_channels, "occupancy.in_channels")
+            checks["flow.in_channels"] = (self.flow.in_channels, self.occupancy.hidden_channels,
+                                          "occupancy.hidden_channels")  # fmt: skip
         for key, (value, wanted, source) in checks.items():
             if value != wanted:
                 raise ValueError(f"{key} = {value} must equal {source} = {wanted}")
@@ -139,9 +140,8 @@ class FlashOcc(OccupancyModel):
         state = None
         if self.temporal is not None:  # (B, (K + 1) 64, X, Y) for BEVDet4D's concatenation
             bev, state = self.temporal(bev, *(inputs[name] for name in HISTORY_INPUTS))
-        encoded = self.bev_encoder(bev)
-        return ModelOutput(occupancy=self.occupancy_head(encoded), depth=depth, history_state=state,
-                           flow=self.flow(encoded))  # fmt: skip
+        logits, flow = self.occupancy_and_flow(self.occupancy_head, self.bev_encoder(bev))
+        return ModelOutput(occupancy=logits, depth=depth, history_state=state, flow=flow)
 
     def loss(self, output: ModelOutput, batch: Batch) -> dict[str, Tensor]:
         """The occupancy loss and, with ``depth_weight``, the depth BCE (FlashOcc M0/M1 have no depth supervision)."""

@@ -24,7 +24,7 @@ from occkit.losses import (
 from occkit.types import OccPrediction
 
 __all__ = ["OccupancyHeadConfig", "OccupancyHead", "OCC3D_CLASS_FREQUENCIES", "occupancy_prediction",
-           "channel_to_height"]
+           "column_mlp"]
 
 #: Voxel counts per Occ3D class (0..16, 17 = free) over the nuScenes train split, as BEVDet's class balance uses.
 OCC3D_CLASS_FREQUENCIES = (
@@ -63,14 +63,10 @@ def occupancy_prediction(logits: Tensor) -> OccPrediction:
     return OccPrediction(semantics=logits.argmax(dim=1).to(torch.uint8))
 
 
-def channel_to_height(in_channels: int, hidden_channels: int, outputs: int) -> tuple[nn.Module, nn.Module]:
-    """The layers of a channel-to-height head: ``conv3x3 + ReLU`` on the BEV, then per BEV cell the MLP
-    ``Linear(C, 2C) -> Softplus -> Linear(2C, outputs)`` (``outputs`` = the column's voxels x values per voxel)."""
-    conv = nn.Sequential(nn.Conv2d(in_channels, hidden_channels, 3, padding=1), nn.ReLU(inplace=True))
-    predictor = nn.Sequential(
-        nn.Linear(hidden_channels, 2 * hidden_channels), nn.Softplus(), nn.Linear(2 * hidden_channels, outputs)
-    )
-    return conv, predictor
+def column_mlp(channels: int, outputs: int) -> nn.Sequential:
+    """The per-BEV-cell MLP of a channel-to-height head, ``Linear(C, 2C) -> Softplus -> Linear(2C, outputs)``
+    (``outputs`` = the column's voxels x values per voxel)."""
+    return nn.Sequential(nn.Linear(channels, 2 * channels), nn.Softplus(), nn.Linear(2 * channels, outputs))
 
 
 class OccupancyHead(nn.Module):
@@ -78,8 +74,8 @@ class OccupancyHead(nn.Module):
 
     def __init__(self, cfg: OccupancyHeadConfig) -> None:
         super().__init__()
-        self.conv, self.predictor = channel_to_height(cfg.in_channels, cfg.hidden_channels,
-                                                      cfg.height * cfg.num_classes)  # fmt: skip
+        self.conv = nn.Sequential(nn.Conv2d(cfg.in_channels, cfg.hidden_channels, 3, padding=1), nn.ReLU(inplace=True))
+        self.predictor = column_mlp(cfg.hidden_channels, cfg.height * cfg.num_classes)
         if cfg.class_balance:
             if cfg.num_classes != len(OCC3D_CLASS_FREQUENCIES):
                 raise ValueError(f"class_balance uses Occ3D's 18 class frequencies, not {cfg.num_classes} classes")
@@ -90,10 +86,17 @@ class OccupancyHead(nn.Module):
         self.cfg = cfg
 
     def forward(self, bev: Tensor) -> Tensor:
-        batch, _, x, y = bev.shape
-        columns = self.conv(bev).permute(0, 2, 3, 1)  # (B, X, Y, C)
+        return self.logits(self.columns(bev))
+
+    def columns(self, bev: Tensor) -> Tensor:
+        """The per-cell features ``(B, X, Y, C_hidden)`` after the conv3x3 (what a flow head reads too)."""
+        return self.conv(bev).permute(0, 2, 3, 1)
+
+    def logits(self, columns: Tensor) -> Tensor:
+        """Logits ``(B, K, X, Y, Z)`` of the per-cell features ``(B, X, Y, C_hidden)``."""
+        batch, x, y, _ = columns.shape
         logits = self.predictor(columns).view(batch, x, y, self.cfg.height, self.cfg.num_classes)  # (B, X, Y, Z, K)
-        return logits.permute(0, 4, 1, 2, 3)  # (B, K, X, Y, Z)
+        return logits.permute(0, 4, 1, 2, 3)
 
     def loss(
         self, logits: Tensor, labels: Tensor, mask_camera: Tensor | None, voxels: CountedVoxels | None = None
