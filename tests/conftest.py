@@ -29,11 +29,13 @@ def make_batch(
     space: LabelSpace = OCC3D_SPACE,
     history: int = 0,
     padded: int = 0,
+    flow: bool = False,
 ) -> Batch:
     """A batch with ``num_cameras`` cameras (0 allowed) spread around the car, random points in +-40 m, ten boxes per
     sample and ``space`` labels that follow simple rules (ground low, a vehicle class around three of the boxes, free
     above; the visibility masks where the space has them); with ``depth_stride``, LiDAR-like depth (0 = none) and
-    height (NaN = none) maps at that feature stride. With ``history``, as many earlier frames of the same rig
+    height (NaN = none) maps at that feature stride; with ``flow``, the vehicles' voxels moving at a velocity of their
+    own (``voxel_flow``). With ``history``, as many earlier frames of the same rig
     (random images), the ego 2 m further back and 3 degrees less turned per frame, the oldest ``padded`` of them
     padded (the current frame repeated, as the dataset pads)."""
     generator = torch.Generator().manual_seed(seed)
@@ -85,6 +87,10 @@ def make_batch(
             for x, y in zip(ix.tolist(), iy.tolist(), strict=True):
                 labels[b, x - 5 : x + 6, y - 2 : y + 3, 2:6] = vehicle + b  # a vehicle class per sample
         batch.voxel_semantics = labels
+        if flow:
+            velocity = torch.randn(batch_size, 1, 1, 1, 2, generator=generator) * 5.0
+            batch.voxel_flow = torch.where((labels >= vehicle)[..., None] & (labels != space.free_index)[..., None],
+                                           velocity, torch.zeros(()))  # fmt: skip
         if "camera" in space.masks:
             batch.mask_camera = torch.rand(batch_size, *shape, generator=generator) > 0.3
         if "lidar" in space.masks:

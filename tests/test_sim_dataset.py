@@ -63,7 +63,8 @@ def test_layout_is_nuscenes_and_occ3d(dataset):
     scene_name = tables["scene"][0]["name"]
     with np.load(dataset / "gts" / scene_name / sample["token"] / "labels.npz") as labels:
         assert {k: (v.shape, v.dtype) for k, v in labels.items()} == {
-            k: ((200, 200, 16), np.uint8) for k in ("semantics", "mask_lidar", "mask_camera")
+            **{k: ((200, 200, 16), np.uint8) for k in ("semantics", "mask_lidar", "mask_camera")},
+            "flow": ((200, 200, 16, 2), np.float32),  # OpenOcc v2's occupancy flow
         }
     infos = json.loads((dataset / "annotations.json").read_text())
     assert infos["train_split"] == [scene_name] and infos["val_split"] == []

@@ -72,6 +72,7 @@ def test_every_zoo_entry_trains_a_step_and_predicts_its_label_space(name):
         depth_stride=experiment.data.depth_downsample,
         space=space,
         history=experiment.data.history,
+        flow=experiment.data.flow,
     )
     torch.manual_seed(0)
     model = zoo.build(name).train()
@@ -92,6 +93,7 @@ def test_every_zoo_entry_trains_a_step_and_predicts_its_label_space(name):
     semantics = prediction.semantics
     assert semantics.dtype == torch.uint8 and tuple(semantics.shape) == (1, *space.grid.shape)
     assert int(semantics.max()) < space.num_classes
+    assert (prediction.flow is not None) == experiment.data.flow == (experiment.model.flow is not None)
 
 
 def test_every_paper_entry_names_its_row_in_its_header_and_in_the_reproducing_guide():
