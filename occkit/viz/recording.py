@@ -48,7 +48,6 @@ from PIL import Image
 from occkit.classes import DETECTION_CLASSES
 from occkit.data.collate import collate
 from occkit.data.dataset import DatasetConfig, OccupancyDataset
-from occkit.data.names import path_under, safe_name
 from occkit.label_space import OCC3D_SPACE, LabelSpace, label_space
 from occkit.nuscenes import CAMERAS
 from occkit.types import Batch
@@ -62,6 +61,7 @@ from occkit.viz.errors import (
     frame_scores,
     voxel_outcomes,
 )
+from occkit.viz.run import Predictor, folder_predictor
 
 __all__ = [
     "FRAME",
@@ -112,7 +112,6 @@ ERRORS = {"wrong_class": WRONG_CLASS, "missed": MISSED, "false_positive": FALSE_
 #: On-screen size of LiDAR points, box edges and the trajectory: a size in UI points keeps them readable at any zoom.
 SCREEN_RADIUS = rr.Radius.ui_points(1.5)
 
-Predictor = Callable[[str], np.ndarray]
 
 
 def set_frame(frame: int, timestamp_us: int | None = None, recording: rr.RecordingStream | None = None) -> None:
@@ -442,20 +441,6 @@ def _name_list(names: Sequence[str], limit: int = 12) -> str:
     return shown + (f", ... ({len(names) - limit} more)" if len(names) > limit else "")
 
 
-def _folder_predictor(folder: Path, tokens: Sequence[str], space: LabelSpace) -> Predictor:
-    """Predictions read from ``folder/<token>.npz``; every frame's file is checked before anything is recorded."""
-    from occkit.metrics.evaluate import read_prediction
-
-    if not folder.is_dir():
-        raise FileNotFoundError(f"prediction folder {folder} does not exist")
-    files = {token: path_under(folder, safe_name(token, "sample token") + ".npz", f"--pred {folder}")
-             for token in tokens}  # fmt: skip
-    for token, path in files.items():
-        if not path.is_file():
-            raise FileNotFoundError(f"no prediction for sample {token}: {path} not found")
-    return lambda token: read_prediction(files[token], space)
-
-
 def _checkpoint_predictor(config: ViewConfig, model: torch.nn.Module, experiment) -> Predictor:
     """The model's predictions by token on its own data settings; a temporal model keeps its stream's memory
     across calls, so the frames must come in time order."""
@@ -513,7 +498,7 @@ def open_scene(config: ViewConfig) -> Scene:
     dataset = OccupancyDataset(DatasetConfig(**common, cameras=cameras, sweeps=0, occupancy=labelled, boxes=True))
     predict, prediction_name = None, None
     if config.pred is not None:
-        predict = _folder_predictor(Path(config.pred), [record.token for record in records], space)
+        predict = folder_predictor(Path(config.pred), [record.token for record in records], space)
         prediction_name = f"prediction ({Path(config.pred).name})"
     elif model is not None:
         predict = _checkpoint_predictor(config, model, experiment)

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
@@ -129,7 +129,9 @@ def _camera_set(dataset: OccupancyDataset, record: FrameRecord, sample: Sample) 
     return CameraSet.from_sample(sample, dataset.config.cameras, np.stack(images))
 
 
-def _folder_predictor(folder: Path, tokens: list[str], space: LabelSpace) -> Predictor:
+def folder_predictor(folder: Path, tokens: Sequence[str], space: LabelSpace) -> Predictor:
+    """Predictions read from ``folder/<token>.npz``; every frame's file is checked before anything is drawn or
+    recorded (``occkit viz`` and ``occkit view``)."""
     from occkit.metrics.evaluate import read_prediction
 
     if not folder.is_dir():
@@ -261,7 +263,7 @@ def render_frames(config: VizConfig, progress: Callable[[str], None] = print) ->
                                              image_aug=image_aug))  # fmt: skip
     if config.pred is not None:
         tokens = [records[i].token for i in picks]
-        predict = _folder_predictor(Path(config.pred), tokens, space)
+        predict = folder_predictor(Path(config.pred), tokens, space)
         pred_name = f"prediction ({Path(config.pred).name})"
     if not labelled and predict is None:
         raise ValueError(f"{root}: the chosen frames of split {config.split!r} have no {space.name} labels; give "
