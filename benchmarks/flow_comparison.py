@@ -39,8 +39,8 @@ from occkit.sim.generate import SimConfig, simulate_dataset
 #: The study's world (benchmarks/study.py): 16 scenes of 24 key frames at 400 x 225, the last 4 held out.
 WORLD = {"scenes": 16, "frames": 24, "image_size": (400, 225), "seed": 7}
 #: Arm -> (zoo entry, ``section.key=value`` changes, what its input holds of the past). The default pair: DAOcc's
-#: tiny fusion model with its LiDAR sweeps (0.2 s of motion, each point with its time lag) and with the key frame's
-#: sweep alone. The camera-only pair (``--arms da_occ_tiny_flow da_occ_tiny_temporal_flow``) compares one frame with
+#: tiny fusion model with its LiDAR sweeps (0.2 s of motion, one channel each in the flow head's motion input) and
+#: with the key frame's sweep alone (the same model, its sweeps' channels empty). The camera-only pair (``--arms da_occ_tiny_flow da_occ_tiny_temporal_flow``) compares one frame with
 #: a recurrent BEV history, but a CPU budget leaves those models without true-positive rays on moving objects
 #: (docs/training.md), so their mAVE is undefined there.
 ARMS: dict[str, tuple[str, tuple[str, ...], str]] = {

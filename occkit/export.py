@@ -118,6 +118,7 @@ def load_model(name: str, checkpoint: str | Path | None = None,
             difference = f"{error} (exported with the checkpoint's own config)"
     if hasattr(model, "remove_detection"):
         model.remove_detection()  # the exported graph outputs occupancy only
+    model.flow_head = None  # and no flow
     return model.eval(), experiment, difference
 
 

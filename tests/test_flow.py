@@ -23,7 +23,8 @@ from occkit.geometry.grid import OCC3D_GRID
 from occkit.label_files import write_occ3d_labels
 from occkit.metrics.evaluate import evaluate_predictions, read_prediction_flow, write_prediction
 from occkit.metrics.rayiou import FLOW_CLASSES, cast_rays_exact, occ_score, rayiou
-from occkit.models.heads.flow import FlowHead, FlowHeadConfig
+from occkit.models.deployment import deploy
+from occkit.models.heads.flow import FlowHead, FlowHeadConfig, MotionConfig, MotionEncoder
 from occkit.sim.generate import SimConfig, simulate_dataset
 from occkit.sim.labels import occupancy_flow_labels, occupancy_labels
 from occkit.sim.world import WorldConfig, generate_world
@@ -166,7 +167,49 @@ def test_the_flow_loss_is_an_l1_over_the_occupied_voxels_only():
         head.loss(out, None, labels)
 
 
-@pytest.mark.parametrize("name", ["flashocc_tiny_flow", "da_occ_tiny_flow", "da_occ_tiny_temporal_flow"])
+def test_the_motion_input_counts_each_sweep_in_its_own_channel():
+    encoder = MotionEncoder(MotionConfig(sweeps=2), OCC3D_GRID)
+    points = torch.tensor([[[0.1, 0.1, 0.0, 9.0, 0.0],      # key frame, column (100, 100)
+                            [0.3, 0.2, 1.0, 9.0, 0.0],      # the same column, higher up
+                            [0.1, 0.1, 0.0, 9.0, 0.049],    # first sweep (lag rounds to 1 period)
+                            [-39.9, 39.9, 0.0, 9.0, 0.3],   # older than 2 sweeps: the last channel, column (0, 199)
+                            [0.1, 0.1, 6.0, 9.0, 0.0],      # above the grid
+                            [45.0, 0.1, 0.0, 9.0, 0.0],     # beyond it
+                            [0.1, 0.1, 0.0, 9.0, 0.0]]])    # padding past num_points
+    counts = encoder.rasterise(points, torch.tensor([6]), torch.eye(4)[None])
+    expected = torch.zeros(1, 3, 200, 200)
+    expected[0, 0, 100, 100], expected[0, 1, 100, 100], expected[0, 2, 0, 199] = 2, 1, 1
+    assert torch.equal(counts, torch.log1p(expected))
+    # The points are moved into the grid's frame first: a flip of x moves the count to the mirrored column.
+    flip = torch.diag(torch.tensor([-1.0, 1.0, 1.0, 1.0]))[None]
+    assert torch.equal(encoder.rasterise(points, torch.tensor([6]), flip), torch.log1p(expected).flip(2))
+    assert encoder(points, torch.tensor([6]), torch.eye(4)[None]).shape == (1, 200, 200, 32)
+
+
+def test_the_motion_input_lands_on_the_labelled_columns_under_augmentation(world_root):
+    experiment = zoo.experiment("daocc_tiny_flow")
+    bev_aug = BevAugConfig(flip_x=0.5, flip_y=0.5, rotate_deg=(-22.5, 22.5), scale=(0.95, 1.05))
+    data = dataclasses.replace(experiment.data, root=str(world_root), split="all", cameras=("CAM_FRONT", "CAM_BACK"),
+                               augment=True, bev_aug=bev_aug)  # fmt: skip
+    dataset = OccupancyDataset(data)
+    model = zoo.build_from_config(experiment.architecture, experiment.model)
+    for index in range(len(dataset)):
+        batch = collate([dataset[index]])
+        counts = model.flow_head.motion.rasterise(batch.points, batch.num_points, model.plan(batch).points_to_grid)
+        occupied = ((batch.voxel_semantics != FREE) & (batch.voxel_semantics != OCC3D.ignore_index)).any(-1)
+        hit = counts[0, 0] > 0  # key-frame points: they lie on the surfaces the labels were made from
+        assert hit.sum() > 1000 and occupied[0][hit].float().mean() > 0.98
+
+
+def test_camera_only_models_refuse_the_lidar_motion_input():
+    for name in ("flashocc_tiny_flow", "da_occ_tiny_flow"):
+        model = zoo.experiment(name).model
+        with pytest.raises(ValueError, match="flow.motion"):
+            dataclasses.replace(model, flow=dataclasses.replace(model.flow, motion=MotionConfig()))
+
+
+@pytest.mark.parametrize("name", ["flashocc_tiny_flow", "da_occ_tiny_flow", "da_occ_tiny_temporal_flow",
+                                  "daocc_tiny_flow"])
 def test_flow_entries_train_on_flow_and_predict_it(world_root, name):
     experiment = zoo.experiment(name)
     assert experiment.data.flow and experiment.model.flow is not None
@@ -180,6 +223,8 @@ def test_flow_entries_train_on_flow_and_predict_it(world_root, name):
     assert output.flow.shape == (2, 200, 200, 16, 2) and losses["flow"] > 0
     sum(losses.values()).backward()
     assert model.flow_head.predictor[-1].weight.grad.abs().sum() > 0
+    if model.flow_head.motion is not None:
+        assert model.flow_head.motion.cnn[0].weight.grad.abs().sum() > 0
     model.eval()
     prediction = model.predict(batch, memory=model.stream()) if memory is not None else model.predict(batch)
     assert prediction.flow.shape == (2, 200, 200, 16, 2)
@@ -290,3 +335,13 @@ def test_evaluating_a_flow_model_reports_mave_and_occscore(world_root, tmp_path)
     plain = OccupancyDataset(dataclasses.replace(data, flow=False))
     without = evaluate_model(model, plain, ray_origins=dataset_ray_origins(plain))
     assert "rayiou" in without and "mave" not in without
+
+
+def test_the_fixed_rig_network_leaves_a_motion_flow_head_out_by_name(world_root):
+    experiment = zoo.experiment("daocc_tiny_flow")
+    data = dataclasses.replace(experiment.data, root=str(world_root), split="all", cameras=("CAM_FRONT", "CAM_BACK"),
+                               augment=False)  # fmt: skip
+    batch = collate([OccupancyDataset(data)[0]])
+    model = zoo.build_from_config(experiment.architecture, experiment.model)
+    with pytest.raises(ValueError, match="flow_head = None"):
+        deploy(model, batch)

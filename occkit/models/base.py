@@ -118,13 +118,16 @@ class OccupancyModel(nn.Module, metaclass=abc.ABCMeta):
         return prediction
 
     # ----------------------------------------------------------------------------------------------------- flow
-    def occupancy_and_flow(self, occupancy_head: nn.Module, features: Tensor) -> tuple[Tensor, Tensor | None]:
+    def occupancy_and_flow(
+        self, occupancy_head: nn.Module, features: Tensor, motion: tuple[Tensor, Tensor, Tensor] | None = None
+    ) -> tuple[Tensor, Tensor | None]:
         """The occupancy head's logits ``(B, K, X, Y, Z)`` of ``features (B, C, X, Y)`` and, with a flow head, the
-        velocities ``(B, X, Y, Z, 2)`` from the same per-cell features; None without one."""
+        velocities ``(B, X, Y, Z, 2)`` from the same per-cell features (and the LiDAR ``motion`` input of a head that
+        has one, :class:`~occkit.models.heads.flow.FlowHead`); None without one."""
         if self.flow_head is None:
             return occupancy_head(features), None
         columns = occupancy_head.columns(features)
-        return occupancy_head.logits(columns), self.flow_head(columns)
+        return occupancy_head.logits(columns), self.flow_head(columns, motion)
 
     def flow_losses(self, output: ModelOutput, batch: Batch) -> dict[str, Tensor]:
         """``{"flow": weighted L1}`` of a model with a flow head (:meth:`FlowHead.loss`); empty without one."""

@@ -206,6 +206,9 @@ class DirectionAwareOccConfig:
             "fusion_channels": (self.fusion_channels, self.bev.neck_channels, "bev.neck_channels"),
         }
         if self.flow is not None:
+            if self.flow.motion is not None:
+                raise ValueError("flow.motion reads LiDAR sweeps, which a camera-only model does not take at "
+                                 "inference: its motion comes from its history frames (temporal)")
             checks["flow.in_channels"] = (self.flow.in_channels, self.occupancy.hidden_channels,
                                           "occupancy.hidden_channels")  # fmt: skip
         nets = {"depth_net": (self.depth_net, self.depth_bins), "height_net": (self.height_net, self.height_bins)}

@@ -25,6 +25,7 @@ from torch import Tensor
 from occkit.data.dataset import DatasetConfig
 from occkit.experiment import CPU_TRAIN, Experiment, TrainConfig, cpu_data, reproduces
 from occkit.geometry.grid import OCC3D_GRID, VoxelGrid
+from occkit.geometry.se3 import invert_transform
 from occkit.label_space import OCC3D_SPACE, SURROUNDOCC_SPACE, LabelSpace
 from occkit.models.base import Architecture, CameraInputs, Deployment, OccupancyModel, camera_images
 from occkit.models.bev_encoder import BevEncoder, BevEncoderConfig, ConvFuser
@@ -33,7 +34,7 @@ from occkit.models.heads.flow import FlowHead, FlowHeadConfig, with_flow_head
 from occkit.models.heads.occupancy import OccupancyHead, OccupancyHeadConfig, occupancy_prediction
 from occkit.models.image_encoder import ImageEncoder, ImageEncoderConfig
 from occkit.models.lidar_encoder import LidarEncoder, LidarEncoderConfig
-from occkit.models.range_extension import RangeExtension, RangeExtensionConfig
+from occkit.models.range_extension import RangeExtension, RangeExtensionConfig, occupancy_to_bev_frame
 from occkit.models.sparse_rules import RulebookSparseEncoder
 from occkit.models.view_transform.projection import ProjectionConfig, ProjectionViewTransform, SamplingPlan
 from occkit.nuscenes import CAMERAS
@@ -97,6 +98,8 @@ class DAOccConfig:
         }
         if self.image is not None:
             expected["view.in_channels"] = (self.view.in_channels, self.image.neck_channels, "image.neck_channels")
+        if self.flow is not None and self.flow.motion is not None and self.lidar is None:
+            raise ValueError("flow.motion reads the LiDAR sweeps, but this DAOcc has no LiDAR branch (lidar)")
         if self.flow is not None:
             expected["flow.in_channels"] = (self.flow.in_channels, self.occupancy.hidden_channels,
                                             "occupancy.hidden_channels")
@@ -120,6 +123,9 @@ class FusionPlan:
     """Where each camera samples its features (None without a camera branch)."""
     range_grid: Tensor
     """``(B, X, Y, 2)`` BVRE ``grid_sample`` coordinates of the occupancy columns in the BEV."""
+    points_to_grid: Tensor | None = None
+    """``(B, 4, 4)`` from the augmented LiDAR frame to the occupancy grid's, for a flow head's motion input (None
+    without one)."""
 
 
 class DAOcc(OccupancyModel):
@@ -152,7 +158,7 @@ class DAOcc(OccupancyModel):
         self.range_extension = RangeExtension(cfg.range_extension, self.grid)
         self.occupancy_head = OccupancyHead(cfg.occupancy)
         if cfg.flow is not None:
-            self.flow_head = FlowHead(cfg.flow)
+            self.flow_head = FlowHead(cfg.flow, self.grid)
         self.detection_head = CenterHead(cfg.detection) if cfg.detection is not None else None
 
     def remove_detection(self) -> None:
@@ -168,7 +174,12 @@ class DAOcc(OccupancyModel):
                 image_size=tuple(images.shape[-2:]), camera_mask=batch.camera_mask,
             )  # fmt: skip
         grid = self.range_extension.sampling_grid(batch.lidar2ego, batch.bev_aug, batch.occ_aug)
-        return FusionPlan(sampling=sampling, range_grid=grid)
+        points_to_grid = None
+        if self.flow_head is not None and self.flow_head.motion is not None:
+            to_bev = occupancy_to_bev_frame(batch.lidar2ego, batch.bev_aug, batch.occ_aug,
+                                            self.cfg.range_extension.label_frame)  # fmt: skip
+            points_to_grid = invert_transform(to_bev)
+        return FusionPlan(sampling=sampling, range_grid=grid, points_to_grid=points_to_grid)
 
     def inputs(self, batch: Batch) -> dict[str, Tensor]:
         inputs = {}
@@ -193,7 +204,12 @@ class DAOcc(OccupancyModel):
     def network(self, inputs: Mapping[str, Tensor], plan: FusionPlan, detect: bool | None = None) -> ModelOutput:
         """The occupancy logits, and the detection head's outputs in training or when ``detect`` is True."""
         bev = self.encode(inputs, plan)
-        logits, flow = self.occupancy_and_flow(self.occupancy_head, self.range_extension(bev, plan.range_grid))
+        motion = None
+        if self.flow_head is not None and self.flow_head.motion is not None:
+            if "points" not in inputs:
+                raise ValueError("the flow head's motion input needs the LiDAR points (points, num_points)")
+            motion = (inputs["points"], inputs["num_points"], plan.points_to_grid)
+        logits, flow = self.occupancy_and_flow(self.occupancy_head, self.range_extension(bev, plan.range_grid), motion)
         output = ModelOutput(occupancy=logits, flow=flow)
         run_detection = self.training if detect is None else detect
         if run_detection and self.detection_head is not None:
@@ -452,9 +468,10 @@ def daocc_surroundocc_tiny() -> Experiment:
 
 def daocc_tiny_flow() -> Experiment:
     """daocc_tiny with an occupancy flow head (two velocities per voxel, channel-to-height on the range-extended BEV,
-    L1 on the occupied voxels), trained on labels that carry flow (``data.flow``). Its LiDAR sweeps carry their time
-    lag, so moving objects show their motion within one sample (``data.sweeps = 0`` gives the key frame alone)."""
-    return with_flow_head(daocc_tiny())
+    L1 on the occupied voxels), trained on labels that carry flow (``data.flow``). The head also reads the LiDAR motion
+    input: the key frame and its 4 sweeps, one BEV channel each, where a moving object shows its motion within one
+    sample (``data.sweeps = 0`` leaves the key frame alone)."""
+    return with_flow_head(daocc_tiny(), motion=True)
 
 
 ARCHITECTURE = Architecture(

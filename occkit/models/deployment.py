@@ -138,10 +138,13 @@ def deploy(model: nn.Module, batch: Batch) -> DeployedNetwork:
     """The fixed-rig inference network of ``model`` (put in eval mode) for the rig of ``batch``.
 
     Raises:
-        ValueError: for a model that is not an :class:`~occkit.models.base.OccupancyModel`, or a batch without the
-            inputs it needs.
+        ValueError: for a model that is not an :class:`~occkit.models.base.OccupancyModel`, a flow head with the LiDAR
+            motion input, or a batch without the inputs it needs.
     """
     if not isinstance(model, OccupancyModel):
         raise ValueError(f"no fixed-rig network for {type(model).__name__}: it is not an occkit OccupancyModel")
+    if model.flow_head is not None and model.flow_head.motion is not None:
+        raise ValueError("the fixed-rig network outputs occupancy only, and this model's flow head reads LiDAR points "
+                         "it does not take: set model.flow_head = None first (occkit export does)")
     model.eval()
     return DeployedNetwork(model, batch).eval()

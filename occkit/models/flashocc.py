@@ -93,6 +93,9 @@ class FlashOccConfig:
             "occupancy.in_channels": (self.occupancy.in_channels, self.bev.neck_channels, "bev.neck_channels"),
         }  # fmt: skip
         if self.flow is not None:
+            if self.flow.motion is not None:
+                raise ValueError("flow.motion reads LiDAR sweeps, which a camera-only model does not take at "
+                                 "inference: its motion comes from its history frames (temporal)")
             checks["flow.in_channels"] = (self.flow.in_channels, self.occupancy.hidden_channels,
                                           "occupancy.hidden_channels")  # fmt: skip
         for key, (value, wanted, source) in checks.items():
