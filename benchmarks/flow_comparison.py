@@ -10,9 +10,9 @@ streamed scene by scene): mIoU and IoU under the camera mask, RayIoU, and the CV
 on the same rays. The zero-flow baseline is the same model's predictions with every velocity set to 0 (the same
 true-positive rays, so the difference is the flow head's alone), scored by ``occkit eval-preds``'s evaluator.
 
-Resumable: a finished arm writes ``<out>/<arm>.json`` and is skipped on a rerun; a killed run resumes from its
-newest checkpoint. ``<out>/flow.md`` and ``<out>/flow.json`` are rewritten after every entry. Times are wall-clock and
-CPU seconds of this process and its data workers: run it on an otherwise idle machine.
+Resumable: a finished arm writes ``<out>/<arm>.json`` and is skipped on a rerun with the same steps and seed; a killed
+run resumes from its newest checkpoint. ``<out>/flow.md`` and ``<out>/flow.json`` are rewritten after every entry.
+Times are wall-clock and CPU seconds of this process and its data workers: run it on an otherwise idle machine.
 """
 
 from __future__ import annotations
@@ -40,9 +40,9 @@ from occkit.sim.generate import SimConfig, simulate_dataset
 WORLD = {"scenes": 16, "frames": 24, "image_size": (400, 225), "seed": 7}
 #: Arm -> (zoo entry, ``section.key=value`` changes, what its input holds of the past). The default pair: DAOcc's
 #: tiny fusion model with its LiDAR sweeps (0.2 s of motion, one channel each in the flow head's motion input) and
-#: with the key frame's sweep alone (the same model, its sweeps' channels empty). The camera-only pair (``--arms da_occ_tiny_flow da_occ_tiny_temporal_flow``) compares one frame with
-#: a recurrent BEV history, but a CPU budget leaves those models without true-positive rays on moving objects
-#: (docs/training.md), so their mAVE is undefined there.
+#: with the key frame's sweep alone (the same model, its sweeps' channels empty). The camera-only pair
+#: (``--arms da_occ_tiny_flow da_occ_tiny_temporal_flow``) compares one frame with a recurrent BEV history; at 1000
+#: CPU steps neither has learned velocities yet (docs/flow.md).
 ARMS: dict[str, tuple[str, tuple[str, ...], str]] = {
     "daocc_tiny_flow": ("daocc_tiny_flow", (), "key frame + 4 LiDAR sweeps (0.2 s)"),
     "daocc_tiny_flow_key_frame": ("daocc_tiny_flow", ("data.sweeps=0",), "key frame's LiDAR sweep only"),
@@ -68,10 +68,14 @@ def _zero_flow_copies(predictions: Path, out: Path) -> Path:
 
 
 def run_arm(name: str, args: argparse.Namespace) -> dict:
-    """Train and score one arm; the cached result when it already ran."""
+    """Train and score one arm; the cached result when it already ran with these steps and seed."""
     result_file = args.out / f"{name}.json"
     if result_file.is_file():
-        return json.loads(result_file.read_text())
+        cached = json.loads(result_file.read_text())
+        if (cached["steps"], cached["seed"]) != (args.steps, args.seed):
+            raise SystemExit(f"{result_file} holds a run of {cached['steps']} steps with seed {cached['seed']}, not "
+                             f"{args.steps} with seed {args.seed}: pass another --out (and --runs), or remove it")
+        return cached
     entry, changes, history = ARMS[name]
     experiment = zoo.load_experiment(entry, list(changes))
     experiment = replace_train(experiment, max_steps=args.steps, epochs=10_000, val_every=-1, checkpoint_every=100,

@@ -13,11 +13,13 @@ metric (mAVE) reads flow only where a ray stops on an occupied voxel.
 
 A model with LiDAR adds the motion input (:class:`MotionConfig`): the key frame and each sweep before it counted into
 their own channel on the occupancy grid's columns, as MotionNet (Wu et al., CVPR 2020) feeds its BEV network, then a
-small dilated 2D CNN whose features join the occupancy head's in the flow MLP. The sweeps show a moving object where it
-was (0.99 m behind its key-frame position after 0.2 s at 5 m/s, measured on the synthetic world), but DAOcc's voxel
-encoder averages a voxel's points into ``(x, y, z, intensity, time lag)``, with a time lag (0 to 0.2 s) hundreds of
-times smaller than the intensity beside it: neither the flow head nor the detection head's velocity branch of
-``daocc_tiny_flow`` learned any motion from it in 1000 steps (both stayed at the zero-velocity error).
+small dilated 2D CNN whose features join the occupancy head's in the flow MLP. The sweeps show a moving object where
+it was (on the synthetic world, a car at 6.6 m/s lay 0.99 m behind its key-frame points in the sweep 0.2 s old), but
+DAOcc's voxel encoder averages a voxel's points into ``(x, y, z, intensity, time lag)``, with a time lag (0 to 0.2 s)
+hundreds of times smaller than the intensity beside it: neither the flow head nor the detection head's velocity
+branch of ``daocc_tiny_flow`` learned any motion from it in 1000 steps (both stayed at the zero-velocity error).
+Such a head reads the occupancy head's features detached (``detach_features``): they say what is where, the motion
+input how it moves, and the occupancy trains as without the head.
 """
 
 from __future__ import annotations
