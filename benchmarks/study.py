@@ -14,11 +14,12 @@ are compared only when their budgets are equal.
 Each paper claim is a comparison of two arms (:data:`CLAIMS`). Once every arm has ``--seeds`` seeds, a claim whose
 two arms' mIoU ranges over seeds overlap gets one more seed for both arms, up to ``--max-seeds``.
 
-Resumable: each finished run writes ``<out>/<arm>/seed-<k>.json`` (with ``--commit``, committed to git at once, so
-an interrupted study keeps what it finished); a rerun skips finished runs, whatever their budget, and a killed run
-resumes from the newest checkpoint in ``<runs>/<arm>/seed-<k>``. The summary (``<out>/study.json``, ``<out>/study.md``
-and ``<out>/study.png``) is rewritten after every run; ``--report`` only rewrites it. Times are wall-clock and CPU
-seconds of this process and its data workers, per device: run it on an otherwise idle machine.
+Resumable: each finished run writes ``<out>/<arm>/seed-<k>.json`` (with ``--commit``, committed to git at once
+with the summary, so an interrupted study keeps what it finished); a rerun skips finished runs, whatever their
+budget, and a killed run resumes from the newest checkpoint in ``<runs>/<arm>/seed-<k>``. The summary
+(``<out>/study.json``, ``<out>/study.md`` and ``<out>/study.png``) is rewritten after every run; ``--report`` only
+rewrites it. Times are wall-clock and CPU seconds of this process and its data workers, per device: run it on an
+otherwise idle machine.
 """
 
 from __future__ import annotations
@@ -42,6 +43,7 @@ from occkit.engine.evaluate import dataset_ray_origins, evaluate_model, evaluati
 from occkit.engine.train import train
 from occkit.experiment import Experiment, replace_train
 from occkit.figure import new_figure, save_figure
+from occkit.models.daocc import with_bev_extent
 from occkit.models.temporal import TemporalConfig
 from occkit.sim.generate import SimConfig, simulate_dataset
 
@@ -57,25 +59,6 @@ def _model(experiment: Experiment, **changes) -> Experiment:
 
 def _data(experiment: Experiment, **changes) -> Experiment:
     return dataclasses.replace(experiment, data=dataclasses.replace(experiment.data, **changes))
-
-
-def _daocc_range(extent: float) -> Callable[[Experiment], Experiment]:
-    """daocc_tiny whose LiDAR, projection, BEV and detection range is +-``extent`` m (0.6 m BEV cells kept)."""
-
-    def change(experiment: Experiment) -> Experiment:
-        m = experiment.model
-        lidar_range = (-extent, -extent, m.lidar.point_cloud_range[2], extent, extent, m.lidar.point_cloud_range[5])
-        cells = round(2 * extent / 0.6)
-        return _model(
-            experiment,
-            view=dataclasses.replace(m.view, point_cloud_range=lidar_range,
-                                     grid_size=(cells, cells, m.view.grid_size[2])),
-            lidar=dataclasses.replace(m.lidar, point_cloud_range=lidar_range),
-            range_extension=dataclasses.replace(m.range_extension, bev_range=(-extent, -extent, extent, extent)),
-            detection=dataclasses.replace(m.detection, point_cloud_range=lidar_range),
-        )  # fmt: skip
-
-    return change
 
 
 def _concat_history(frames: int) -> Callable[[Experiment], Experiment]:
@@ -115,7 +98,10 @@ ARMS: dict[str, Arm] = {
     "daocc_tiny - detection": Arm(
         "daocc_tiny", lambda e: _data(_model(e, detection=None), boxes=False), "without the auxiliary detection head"
     ),
-    "daocc_tiny - BVRE": Arm("daocc_tiny", _daocc_range(40.8), "BEV range +-40.8 m, just the Occ3D grid"),
+    "daocc_tiny - BVRE": Arm(
+        "daocc_tiny", lambda e: dataclasses.replace(e, model=with_bev_extent(e.model, 40.8)),
+        "BEV range +-40.8 m, just the Occ3D grid",
+    ),
     "daocc_tiny camera only": Arm(
         "daocc_tiny", lambda e: _data(_model(e, lidar=None), sweeps=-1), "the camera branch alone (projection)"
     ),
@@ -234,11 +220,15 @@ def run_arm(name: str, seed: int, args: argparse.Namespace) -> dict:
     result_file.write_text(json.dumps(result, indent=2) + "\n")
     print(f"[study] {name}, seed {seed}: mIoU {100 * result['miou']:.2f}, IoU {100 * result['iou']:.2f}, "
           f"RayIoU {100 * result['rayiou']:.2f} ({train_wall / 60:.1f} min training)", flush=True)
-    if args.commit:
-        subprocess.run(["git", "add", str(result_file)], check=True)
-        subprocess.run(["git", "commit", "-q", "-m", f"study: {name}, seed {seed}", "--", str(result_file)],
-                       check=True)  # fmt: skip
     return result
+
+
+def commit(name: str, seed: int, out: Path) -> None:
+    """Commit one finished run's result file with the summary it was just written into."""
+    summary = [str(out / f"study.{ext}") for ext in ("json", "md", "png")]
+    files = [str(out / _slug(name) / f"seed-{seed}.json"), *summary]
+    subprocess.run(["git", "add", "--", *files], check=True)
+    subprocess.run(["git", "commit", "-q", "-m", f"study: {name}, seed {seed}", "--", *files], check=True)
 
 
 def _finished(out: Path) -> dict[str, list[dict]]:
@@ -374,7 +364,8 @@ def main() -> None:
     parser.add_argument("--arms", nargs="+", choices=list(ARMS), default=list(ARMS), metavar="ARM")
     parser.add_argument("--out", type=Path, default=Path("docs/results/study"))
     parser.add_argument("--runs", type=Path, default=Path("runs/study"))
-    parser.add_argument("--commit", action="store_true", help="commit each finished run's result file to git")
+    parser.add_argument("--commit", action="store_true",
+                        help="commit each finished run's result file and the summary to git")
     parser.add_argument("--report", action="store_true", help="only rewrite the summary from the finished runs")
     parser.add_argument("--progress", action="store_true", help="show each run's training progress bar")
     args = parser.parse_args()
@@ -395,6 +386,8 @@ def main() -> None:
             break
         run_arm(*todo[0], args)
         write_report(args.out, args)
+        if args.commit:
+            commit(*todo[0], args.out)
     report = write_report(args.out, args)
     print((args.out / "study.md").read_text())
     print(f"[study] done: {report['hours']}")

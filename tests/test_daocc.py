@@ -11,7 +11,7 @@ from conftest import fit_batch, parameters_without_gradient
 from occkit import zoo
 from occkit.config import ConfigError
 from occkit.models.complexity import count_macs, count_parameters
-from occkit.models.daocc import DAOcc, DAOccConfig
+from occkit.models.daocc import DAOcc, DAOccConfig, with_bev_extent
 from occkit.types import OccPrediction
 from occkit.zoo import load_experiment
 
@@ -117,3 +117,21 @@ def test_zoo_errors_name_the_problem(tmp_path):
     bad.write_text(zoo.config_yaml("daocc_tiny").replace("fusion_channels:", "fusion_channel:"))
     with pytest.raises(ConfigError, match="fusion_channel"):
         load_experiment(bad)
+
+
+@pytest.mark.parametrize("detection", [True, False])
+def test_bev_extent_keeps_the_cell_size_and_every_branch_in_step(synthetic_batch, detection):
+    _, cfg = zoo.model_config("daocc_tiny")
+    cfg = cfg if detection else dataclasses.replace(cfg, detection=None)
+    narrow = with_bev_extent(cfg, 40.8)  # the BVRE ablation: the BEV just covers the +-40 m grid
+    assert narrow.view.grid_size == (136, 136, cfg.view.grid_size[2])  # 0.6 m cells, as daocc_tiny's 144 over 86.4 m
+    assert narrow.lidar.point_cloud_range == narrow.view.point_cloud_range == (-40.8, -40.8, -5.0, 40.8, 40.8, 3.0)
+    assert narrow.range_extension.bev_range == (-40.8, -40.8, 40.8, 40.8)
+    assert (narrow.detection is None) == (not detection)
+    torch.manual_seed(0)
+    model = DAOcc(narrow).train()  # the detection head runs in training only
+    with torch.no_grad():
+        output = model(synthetic_batch(batch_size=1))
+    assert tuple(output.occupancy.shape) == (1, 18, 200, 200, 16)
+    if detection:
+        assert tuple(output.detection[0]["heatmap"].shape) == (1, 1, 136, 136)

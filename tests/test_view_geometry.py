@@ -172,7 +172,8 @@ def test_range_extension_samples_the_lidar_bev_cell_under_each_occupancy_column(
     bev = torch.stack([xx, yy])[None]
     occ_aug = torch.diag(torch.tensor([-1.0 if flip[0] else 1.0, -1.0 if flip[1] else 1.0, 1.0, 1.0]))
     bev_aug = lidar_frame_aug(occ_aug, lidar2ego()).float()
-    out = bvre(bev, bvre.sampling_grid(lidar2ego()[None], bev_aug[None], occ_aug[None]))  # (1, 2, 40, 40)
+    to_bev = bvre.to_bev_frame(lidar2ego()[None], bev_aug[None], occ_aug[None])
+    out = bvre(bev, bvre.sampling_grid(to_bev))  # (1, 2, 40, 40)
     assert out.shape == (1, 2, 40, 40)
     # Occupancy column centres (augmented ego frame) -> un-augment -> LiDAR -> augmented LiDAR.
     xs, ys = occ_grid.axis_centers(0), occ_grid.axis_centers(1)
@@ -188,9 +189,9 @@ def test_range_extension_zero_outside_the_bev_and_identity_in_the_lidar_frame():
     bvre = RangeExtension(cfg, occ_grid)
     ones = torch.ones(1, 1, 180, 180)
     eye = torch.eye(4)[None]
-    out = bvre(ones, bvre.sampling_grid(lidar2ego()[None], eye, eye))
+    out = bvre(ones, bvre.sampling_grid(bvre.to_bev_frame(lidar2ego()[None], eye, eye)))
     assert out.shape == (1, 1, 200, 200)
     torch.testing.assert_close(out, torch.ones_like(out))  # +-50 lies inside +-54: no zero padding reaches it
     narrow = RangeExtension(RangeExtensionConfig((-25.0, -25.0, 25.0, 25.0), 1, 1, "lidar"), occ_grid)
-    far = narrow(torch.ones(1, 1, 50, 50), narrow.sampling_grid(lidar2ego()[None], eye, eye))
+    far = narrow(torch.ones(1, 1, 50, 50), narrow.sampling_grid(narrow.to_bev_frame(lidar2ego()[None], eye, eye)))
     assert far[0, 0, 0, 0] == 0 and far[0, 0, 100, 100] == 1

@@ -34,7 +34,7 @@ from occkit.models.heads.flow import FlowHead, FlowHeadConfig, with_flow_head
 from occkit.models.heads.occupancy import OccupancyHead, OccupancyHeadConfig, occupancy_prediction
 from occkit.models.image_encoder import ImageEncoder, ImageEncoderConfig
 from occkit.models.lidar_encoder import LidarEncoder, LidarEncoderConfig
-from occkit.models.range_extension import RangeExtension, RangeExtensionConfig, occupancy_to_bev_frame
+from occkit.models.range_extension import RangeExtension, RangeExtensionConfig
 from occkit.models.sparse_rules import RulebookSparseEncoder
 from occkit.models.view_transform.projection import ProjectionConfig, ProjectionViewTransform, SamplingPlan
 from occkit.nuscenes import CAMERAS
@@ -42,7 +42,7 @@ from occkit.types import Batch, ModelOutput, OccPrediction
 
 __all__ = ["DAOccConfig", "FusionPlan", "DAOcc", "FusionInputs", "ARCHITECTURE", "daocc", "daocc_no_mask", "daocc_24e",
            "daocc_no_detection", "daocc_no_range_extension", "daocc_surroundocc", "daocc_lidar", "daocc_tiny",
-           "daocc_surroundocc_tiny"]
+           "daocc_surroundocc_tiny", "with_bev_extent"]
 
 
 @dataclass(frozen=True)
@@ -173,11 +173,10 @@ class DAOcc(OccupancyModel):
                 batch.intrinsics, batch.cam2ego, batch.img_aug, batch.lidar2ego, batch.bev_aug,
                 image_size=tuple(images.shape[-2:]), camera_mask=batch.camera_mask,
             )  # fmt: skip
-        grid = self.range_extension.sampling_grid(batch.lidar2ego, batch.bev_aug, batch.occ_aug)
+        to_bev = self.range_extension.to_bev_frame(batch.lidar2ego, batch.bev_aug, batch.occ_aug)
+        grid = self.range_extension.sampling_grid(to_bev)
         points_to_grid = None
         if self.flow_head is not None and self.flow_head.motion is not None:
-            to_bev = occupancy_to_bev_frame(batch.lidar2ego, batch.bev_aug, batch.occ_aug,
-                                            self.cfg.range_extension.label_frame)  # fmt: skip
             points_to_grid = invert_transform(to_bev)
         return FusionPlan(sampling=sampling, range_grid=grid, points_to_grid=points_to_grid)
 
@@ -326,6 +325,24 @@ TRAIN = TrainConfig(epochs=6, batch_size=4, global_batch=32, sampler="cbgs", lr=
                     ema_initial_updates=10560, val_every=2)  # fmt: skip
 
 
+def with_bev_extent(model: DAOccConfig, extent: float) -> DAOccConfig:
+    """``model`` whose LiDAR, projection, BEV and detection range is +-``extent`` m in x and y: the BEV cell size
+    and the height range and cells are kept (the BEV range extension's ablation shrinks ``extent`` to the grid's)."""
+    view = model.view
+    cell = (view.point_cloud_range[3] - view.point_cloud_range[0]) / view.grid_size[0]
+    cells = round(2 * extent / cell)
+    low, high = view.point_cloud_range[2], view.point_cloud_range[5]
+    lidar_range = (-extent, -extent, low, extent, extent, high)
+    return dataclasses.replace(
+        model,
+        view=dataclasses.replace(view, point_cloud_range=lidar_range, grid_size=(cells, cells, view.grid_size[2])),
+        lidar=None if model.lidar is None else dataclasses.replace(model.lidar, point_cloud_range=lidar_range),
+        range_extension=dataclasses.replace(model.range_extension, bev_range=(-extent, -extent, extent, extent)),
+        detection=None if model.detection is None
+        else dataclasses.replace(model.detection, point_cloud_range=lidar_range),
+    )  # fmt: skip
+
+
 def _data(cameras: tuple[str, ...] = CAMERAS, space: LabelSpace = OCC3D_SPACE) -> DatasetConfig:
     """The paper's inputs: 10 LiDAR sweeps (9 before the key frame) and the boxes of the detection head, only those
     with LiDAR or radar points (mmdet3d's use_valid_flag)."""
@@ -372,17 +389,7 @@ def daocc_no_detection() -> Experiment:
 def daocc_no_range_extension() -> Experiment:
     """DAOcc whose LiDAR, projection and detection range just covers the +-40 m Occ3D grid (136 x 136 BEV cells of
     0.6 m, the paper's cell size) instead of extending to +-54 m."""
-    extent = 40.8
-    lidar_range = (-extent, -extent, -5.0, extent, extent, 3.0)
-    model = _paper_model()
-    model = dataclasses.replace(
-        model,
-        view=dataclasses.replace(model.view, point_cloud_range=lidar_range, grid_size=(136, 136, 10)),
-        lidar=dataclasses.replace(model.lidar, point_cloud_range=lidar_range),
-        range_extension=dataclasses.replace(model.range_extension, bev_range=(-extent, -extent, extent, extent)),
-        detection=dataclasses.replace(model.detection, point_cloud_range=lidar_range),
-    )
-    return Experiment("daocc", model, _data(), TRAIN)
+    return Experiment("daocc", with_bev_extent(_paper_model(), 40.8), _data(), TRAIN)
 
 
 @reproduces(PAPER, "SurroundOcc benchmark, DAOcc R50 256 x 704", "45.0 IoU, 30.5 mIoU, SurroundOcc nuScenes val")
@@ -448,20 +455,14 @@ def daocc_tiny() -> Experiment:
 def daocc_surroundocc_tiny() -> Experiment:
     """daocc_tiny on SurroundOcc's labels: the LiDAR-frame +-50 m grid at 0.5 m with 17 classes (0 = empty), a
     +-50.4 m BEV of 0.6 m cells (168 x 168) so that the grid lies inside it, drop-free CE and Lovasz, no mask."""
-    cfg, space = daocc_tiny().model, SURROUNDOCC_SPACE
-    extent = 50.4
-    lidar_range = (-extent, -extent, -5.0, extent, extent, 3.0)
+    cfg, space = with_bev_extent(daocc_tiny().model, 50.4), SURROUNDOCC_SPACE
     model = dataclasses.replace(
         cfg,
         occ_range=space.grid.point_cloud_range,
         occ_voxel_size=space.grid.voxel_size,
-        view=dataclasses.replace(cfg.view, point_cloud_range=lidar_range, grid_size=(168, 168, 4)),
-        lidar=dataclasses.replace(cfg.lidar, point_cloud_range=lidar_range),
-        range_extension=dataclasses.replace(cfg.range_extension, bev_range=(-extent, -extent, extent, extent),
-                                            label_frame=space.frame),
+        range_extension=dataclasses.replace(cfg.range_extension, label_frame=space.frame),
         occupancy=OccupancyHeadConfig(in_channels=32, hidden_channels=32, num_classes=space.num_classes,
                                       free_index=space.free_index, use_mask=False, lovasz_weight=1.0),
-        detection=dataclasses.replace(cfg.detection, point_cloud_range=lidar_range),
     )  # fmt: skip
     return Experiment("daocc", model, cpu_data(_data(space=space)), CPU_TRAIN)
 

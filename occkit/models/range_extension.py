@@ -63,13 +63,17 @@ class RangeExtension(nn.Module):
         self.cfg = cfg
         self.out_channels = cfg.out_channels
 
-    def sampling_grid(self, lidar2ego: Tensor, bev_aug: Tensor, occ_aug: Tensor) -> Tensor:
-        """``(B, X, Y, 2)`` ``grid_sample`` coordinates of the occupancy columns in the BEV.
+    def to_bev_frame(self, lidar2ego: Tensor, bev_aug: Tensor, occ_aug: Tensor) -> Tensor:
+        """``(B, 4, 4)`` map from the augmented occupancy frame to the augmented LiDAR (BEV) frame."""
+        return occupancy_to_bev_frame(lidar2ego, bev_aug, occ_aug, self.cfg.label_frame).to(self.columns.dtype)
+
+    def sampling_grid(self, to_bev: Tensor) -> Tensor:
+        """``(B, X, Y, 2)`` ``grid_sample`` coordinates of the occupancy columns in the BEV, given the
+        ``to_bev (B, 4, 4)`` of :meth:`to_bev_frame`.
 
         The BEV is ``(X_bev, Y_bev)``-ordered, so ``grid_sample``'s first coordinate (width) is y and its second
         (height) is x.
         """
-        to_bev = occupancy_to_bev_frame(lidar2ego, bev_aug, occ_aug, self.cfg.label_frame).to(self.columns.dtype)
         points = transform_points(to_bev[:, None], self.columns[None])  # (B, X, Y, 3)
         x_min, y_min, x_max, y_max = self.cfg.bev_range
         norm_x = (points[..., 0] - x_min) / (x_max - x_min) * 2 - 1

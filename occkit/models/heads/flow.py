@@ -82,11 +82,11 @@ class MotionEncoder(nn.Module):
         index, inside = self.grid.world_to_index(xyz)
         real = torch.arange(length, device=points.device)[None] < num_points.to(points.device)[:, None]
         sweep = torch.round(points[..., 4] / self.cfg.sweep_period).long().clamp(0, self.cfg.sweeps)
-        keep = inside & real
         batch_index = torch.arange(batch, device=points.device)[:, None].expand(batch, length)
         cell = ((batch_index * (self.cfg.sweeps + 1) + sweep) * nx + index[..., 0]) * ny + index[..., 1]
+        cell = cell[inside & real]
         counts = torch.zeros(batch * (self.cfg.sweeps + 1) * nx * ny, device=points.device, dtype=points.dtype)
-        counts.index_add_(0, cell[keep], torch.ones_like(cell[keep], dtype=points.dtype))
+        counts.index_add_(0, cell, torch.ones_like(cell, dtype=points.dtype))
         return torch.log1p(counts.view(batch, self.cfg.sweeps + 1, nx, ny))
 
     def forward(self, points: Tensor, num_points: Tensor, points_to_grid: Tensor) -> Tensor:
