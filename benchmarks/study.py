@@ -189,8 +189,8 @@ def run_arm(name: str, seed: int, args: argparse.Namespace) -> dict:
         return json.loads(result_file.read_text())
     arm = ARMS[name]
     experiment = _data(arm.experiment(), root=str(args.data))
-    experiment = replace_train(experiment, max_steps=args.steps, epochs=10_000, val_every=-1, checkpoint_every=100,
-                               seed=seed)  # fmt: skip
+    experiment = replace_train(experiment, max_steps=args.steps, epochs=10_000, val_every=-1,
+                               checkpoint_every=args.checkpoint_every, seed=seed)  # fmt: skip
     folder = args.runs / _slug(name) / f"seed-{seed}"
     print(f"[study] {name}, seed {seed}: training {args.steps} steps into {folder}", flush=True)
     pointer = folder / "last.json"  # the checkpoint a resumed run starts from
@@ -203,7 +203,9 @@ def run_arm(name: str, seed: int, args: argparse.Namespace) -> dict:
         # took, scaled to the whole run (`resumed_from_step` in the result says so).
         scale = run.steps / (run.steps - start_step)
         train_wall, train_cpu = train_wall * scale, train_cpu * scale
-    model, experiment = load_trained(sorted(folder.glob("step-*.pt"))[-1])
+    # Scored where it trained (train() picks CUDA when there is one).
+    device = "cuda" if torch.cuda.is_available() else "cpu"
+    model, experiment = load_trained(sorted(folder.glob("step-*.pt"))[-1], device=device)
     dataset = evaluation_dataset(experiment, args.data, "val")
     torch.set_flush_denormal(True)
     wall, cpu = time.perf_counter(), _cpu_seconds()
@@ -364,6 +366,8 @@ def main() -> None:
     parser.add_argument("--arms", nargs="+", choices=list(ARMS), default=list(ARMS), metavar="ARM")
     parser.add_argument("--out", type=Path, default=Path("docs/results/study"))
     parser.add_argument("--runs", type=Path, default=Path("runs/study"))
+    parser.add_argument("--checkpoint-every", type=int, default=100,
+                        help="steps between a run's checkpoints (a killed run resumes from the newest)")
     parser.add_argument("--commit", action="store_true",
                         help="commit each finished run's result file and the summary to git")
     parser.add_argument("--report", action="store_true", help="only rewrite the summary from the finished runs")
