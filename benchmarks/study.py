@@ -27,12 +27,14 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import multiprocessing
 import os
 import resource
 import statistics
 import subprocess
 import time
 from collections.abc import Callable
+from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -328,8 +330,9 @@ def write_report(out: Path, args: argparse.Namespace) -> dict:
                      f"{v['status']} |")
     lines.append("")
     for device, spent in hours.items():
-        lines.append(f"- {device}: {spent['runs']} runs, {spent['wall_hours']:.2f} h wall-clock, "
-                     f"{spent['cpu_hours']:.2f} CPU hours (the process and its data workers).")
+        lines.append(f"- {device}: {spent['runs']} runs, {spent['wall_hours']:.2f} h wall-clock (the sum of the runs' "
+                     f"own, which overlap when runs shared the machine), {spent['cpu_hours']:.2f} CPU hours "
+                     "(each run's process and its data workers).")  # fmt: skip
     (out / "study.md").write_text("\n".join(lines) + "\n")
     _plot(summaries, out / "study.png")
     return report
@@ -357,6 +360,51 @@ def _plot(summaries: dict[str, dict], path: Path) -> None:
     save_figure(fig, path, dpi=110)
 
 
+def _todo(args: argparse.Namespace, running: set[tuple[str, int]]) -> list[tuple[str, int]]:
+    """The runs still to start, seed-major: ``--seeds`` per arm, then the extra seeds of unsettled claims."""
+    wanted = _needs_more_seeds(_finished(args.out), args.arms, args.seeds, args.max_seeds)
+    return [(name, seed) for seed in range(args.max_seeds) for name in args.arms
+            if seed < wanted[name] and (name, seed) not in running
+            and not (args.out / _slug(name) / f"seed-{seed}.json").is_file()]  # fmt: skip
+
+
+def _worker_threads(threads: int) -> None:
+    torch.set_num_threads(threads)
+
+
+def run_all(args: argparse.Namespace) -> None:
+    """Every run the arms need, ``--jobs`` at a time; the summary is rewritten (and committed) as each lands.
+
+    Several at a time pays on a GPU, where one batch-1 run leaves the device mostly idle; the runs of a pool share
+    the CPU cores (``cpu_count // jobs`` threads each).
+    """
+
+    def landed(name: str, seed: int) -> None:
+        write_report(args.out, args)
+        if args.commit:
+            commit(name, seed, args.out)
+
+    if args.jobs == 1:
+        while todo := _todo(args, set()):
+            run_arm(*todo[0], args)
+            landed(*todo[0])
+        return
+    threads = max(1, (os.cpu_count() or 1) // args.jobs)
+    context = multiprocessing.get_context("spawn")
+    with ProcessPoolExecutor(args.jobs, mp_context=context, initializer=_worker_threads, initargs=(threads,)) as pool:
+        running: dict[Future, tuple[str, int]] = {}
+        while True:
+            for job in _todo(args, set(running.values()))[: args.jobs - len(running)]:
+                running[pool.submit(run_arm, *job, args)] = job
+            if not running:
+                return
+            done, _ = wait(running, return_when=FIRST_COMPLETED)
+            for future in done:
+                job = running.pop(future)
+                future.result()  # a failed run stops the study with its error
+                landed(*job)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--data", type=Path, default=Path("data/study-world"))
@@ -372,6 +420,7 @@ def main() -> None:
                         help="commit each finished run's result file and the summary to git")
     parser.add_argument("--report", action="store_true", help="only rewrite the summary from the finished runs")
     parser.add_argument("--progress", action="store_true", help="show each run's training progress bar")
+    parser.add_argument("--jobs", type=int, default=1, help="runs at a time, each in its own process (default 1)")
     args = parser.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
     if args.report:
@@ -381,17 +430,7 @@ def main() -> None:
         print(f"[study] simulating {WORLD['scenes']} scenes x {WORLD['frames']} key frames into {args.data}",
               flush=True)
         simulate_dataset(SimConfig(**WORLD), args.data, workers=2)
-    while True:
-        runs = _finished(args.out)
-        wanted = _needs_more_seeds(runs, args.arms, args.seeds, args.max_seeds)
-        todo = [(name, seed) for seed in range(args.max_seeds) for name in args.arms
-                if seed < wanted[name] and seed >= len(runs[name])]  # fmt: skip
-        if not todo:
-            break
-        run_arm(*todo[0], args)
-        write_report(args.out, args)
-        if args.commit:
-            commit(*todo[0], args.out)
+    run_all(args)
     report = write_report(args.out, args)
     print((args.out / "study.md").read_text())
     print(f"[study] done: {report['hours']}")
