@@ -353,7 +353,9 @@ def _plot(summaries: dict[str, dict], path: Path) -> None:
         axis.barh(range(len(names)), means, xerr=[low, high], color=colours, capsize=2)
         axis.set_title(title, fontsize=10)
         axis.grid(axis="x", alpha=0.3)
-    axes[0].set_yticks(range(len(names)), names, fontsize=8)
+    # Groups of arms may have different budgets: each label says its arm's steps.
+    labels = [f"{n} ({'/'.join(map(str, summaries[n]['steps']))} steps)" for n in names]
+    axes[0].set_yticks(range(len(names)), labels, fontsize=8)
     axes[0].invert_yaxis()
     fig.suptitle("tiny-scale ablations, held-out scenes (bars: mean; whiskers: range over seeds)", fontsize=10)
     fig.tight_layout()
