@@ -304,6 +304,22 @@ def _octant_sources(matrix_bytes: bytes, grid: VoxelGrid, device: str) -> tuple[
     return flat, inside
 
 
+def _octant_samples(values: Tensor, matrix: Tensor, grid: VoxelGrid, fill: int | bool) -> tuple[Tensor, ...]:
+    """``values`` (``grid.shape``) read at the 8 octant centres of every output voxel, ``(X*Y*Z, 8)``, ``fill``
+    where a centre maps from outside the grid; with the flat input voxels read and whether each is inside."""
+    flat, inside = _octant_sources(matrix.numpy().tobytes(), grid, str(values.device))
+    samples = values.reshape(-1)[flat]
+    samples[~inside] = fill
+    return samples, flat, inside
+
+
+def _first_occupied(samples: Tensor, empty: int) -> Tensor:
+    """``(N,)`` index of each row's first sample that is not ``empty`` (0 when all are): the label a resampled
+    voxel takes."""
+    occupied = samples != empty
+    return torch.where(occupied.any(dim=1), occupied.to(torch.uint8).argmax(dim=1), 0)
+
+
 def augment_occupancy(
     volume: np.ndarray | Tensor, occ_aug: Tensor, grid: VoxelGrid, fill: int | bool, empty: int | None = None
 ) -> np.ndarray | Tensor:
@@ -346,15 +362,11 @@ def augment_occupancy(
         return torch.flip(volume, dims=flip_axes).contiguous()
     is_numpy = isinstance(volume, np.ndarray)
     values = torch.from_numpy(np.ascontiguousarray(volume)) if is_numpy else volume
-    flat, inside = _octant_sources(matrix.numpy().tobytes(), grid, str(values.device))
-    samples = values.reshape(-1)[flat]  # (X*Y*Z, 8)
-    samples[~inside] = fill
+    samples, _, _ = _octant_samples(values, matrix, grid, fill)
     if empty is None:
         resampled = samples.max(dim=1).values
     else:
-        occupied = samples != empty
-        first = torch.where(occupied.any(dim=1), occupied.to(torch.uint8).argmax(dim=1), 0)
-        resampled = samples.gather(1, first[:, None])[:, 0]
+        resampled = samples.gather(1, _first_occupied(samples, empty)[:, None])[:, 0]
     resampled = resampled.reshape(grid.shape)
     return resampled.numpy() if is_numpy else resampled
 
@@ -400,11 +412,8 @@ def augment_flow(
 def _first_sources(semantics: np.ndarray, matrix: Tensor, grid: VoxelGrid, fill: int, empty: int) -> np.ndarray:
     """``(X*Y*Z,)`` int64 flat input voxel each output voxel's label comes from in :func:`augment_occupancy`'s
     resampling (the first octant sample that is not ``empty``, else the first), -1 where that sample is outside."""
-    flat, inside = _octant_sources(matrix.numpy().tobytes(), grid, "cpu")
-    samples = torch.from_numpy(semantics).reshape(-1)[flat]
-    samples[~inside] = fill
-    occupied = samples != empty
-    first = torch.where(occupied.any(dim=1), occupied.to(torch.uint8).argmax(dim=1), 0)
+    samples, flat, inside = _octant_samples(torch.from_numpy(semantics), matrix, grid, fill)
+    first = _first_occupied(samples, empty)
     chosen = flat.gather(1, first[:, None])[:, 0]
     return torch.where(inside.gather(1, first[:, None])[:, 0], chosen, -1).numpy()
 
