@@ -70,7 +70,7 @@ from occkit.models.base import FIXED_CALIBRATION_RETIRED, Architecture, Occupanc
 from occkit.models.bev_encoder import BevEncoder, BevEncoderConfig
 from occkit.models.dac import DACBlock
 from occkit.models.heads.depth import DepthNet, DepthNetConfig, camera_parameters, lidar_target
-from occkit.models.heads.flow import FlowHead, FlowHeadConfig, with_flow_head
+from occkit.models.heads.flow import FlowHead, FlowHeadConfig, check_motion_input, with_flow_head
 from occkit.models.heads.occupancy import OccupancyHead, OccupancyHeadConfig
 from occkit.models.image_encoder import ImageEncoder, ImageEncoderConfig
 from occkit.models.temporal import HISTORY_INPUTS, TemporalConfig, TemporalFusion
@@ -205,10 +205,8 @@ class DirectionAwareOccConfig:
             "occupancy.in_channels": (self.occupancy.in_channels, self.fusion_channels, "fusion_channels"),
             "fusion_channels": (self.fusion_channels, self.bev.neck_channels, "bev.neck_channels"),
         }
+        check_motion_input(self.flow, lidar=False)
         if self.flow is not None:
-            if self.flow.motion is not None:
-                raise ValueError("flow.motion reads LiDAR sweeps, which a camera-only model does not take at "
-                                 "inference: its motion comes from its history frames (temporal)")
             checks["flow.in_channels"] = (self.flow.in_channels, self.occupancy.hidden_channels,
                                           "occupancy.hidden_channels")  # fmt: skip
         nets = {"depth_net": (self.depth_net, self.depth_bins), "height_net": (self.height_net, self.height_bins)}

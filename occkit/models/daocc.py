@@ -30,7 +30,7 @@ from occkit.label_space import OCC3D_SPACE, SURROUNDOCC_SPACE, LabelSpace
 from occkit.models.base import Architecture, CameraInputs, Deployment, OccupancyModel, camera_images
 from occkit.models.bev_encoder import BevEncoder, BevEncoderConfig, ConvFuser
 from occkit.models.heads.center import CenterHead, CenterHeadConfig
-from occkit.models.heads.flow import FlowHead, FlowHeadConfig, with_flow_head
+from occkit.models.heads.flow import FlowHead, FlowHeadConfig, check_motion_input, with_flow_head
 from occkit.models.heads.occupancy import OccupancyHead, OccupancyHeadConfig, occupancy_prediction
 from occkit.models.image_encoder import ImageEncoder, ImageEncoderConfig
 from occkit.models.lidar_encoder import LidarEncoder, LidarEncoderConfig
@@ -98,8 +98,7 @@ class DAOccConfig:
         }
         if self.image is not None:
             expected["view.in_channels"] = (self.view.in_channels, self.image.neck_channels, "image.neck_channels")
-        if self.flow is not None and self.flow.motion is not None and self.lidar is None:
-            raise ValueError("flow.motion reads the LiDAR sweeps, but this DAOcc has no LiDAR branch (lidar)")
+        check_motion_input(self.flow, lidar=self.lidar is not None)
         if self.flow is not None:
             expected["flow.in_channels"] = (self.flow.in_channels, self.occupancy.hidden_channels,
                                             "occupancy.hidden_channels")

@@ -27,7 +27,7 @@ from occkit.losses import depth_bce
 from occkit.models.base import Architecture, OccupancyModel, camera_images
 from occkit.models.bev_encoder import BevEncoder, BevEncoderConfig
 from occkit.models.heads.depth import lidar_target
-from occkit.models.heads.flow import FlowHead, FlowHeadConfig, with_flow_head
+from occkit.models.heads.flow import FlowHead, FlowHeadConfig, check_motion_input, with_flow_head
 from occkit.models.heads.occupancy import OccupancyHead, OccupancyHeadConfig
 from occkit.models.image_encoder import ImageEncoder, ImageEncoderConfig
 from occkit.models.temporal import HISTORY_INPUTS, TemporalConfig, TemporalFusion
@@ -92,10 +92,8 @@ class FlashOccConfig:
                                                                              "temporal" if self.temporal else "")),
             "occupancy.in_channels": (self.occupancy.in_channels, self.bev.neck_channels, "bev.neck_channels"),
         }  # fmt: skip
+        check_motion_input(self.flow, lidar=False)
         if self.flow is not None:
-            if self.flow.motion is not None:
-                raise ValueError("flow.motion reads LiDAR sweeps, which a camera-only model does not take at "
-                                 "inference: its motion comes from its history frames (temporal)")
             checks["flow.in_channels"] = (self.flow.in_channels, self.occupancy.hidden_channels,
                                           "occupancy.hidden_channels")  # fmt: skip
         for key, (value, wanted, source) in checks.items():

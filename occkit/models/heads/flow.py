@@ -36,7 +36,7 @@ from occkit.geometry.grid import VoxelGrid
 from occkit.geometry.se3 import transform_points
 from occkit.models.heads.occupancy import column_mlp
 
-__all__ = ["MotionConfig", "MotionEncoder", "FlowHeadConfig", "FlowHead", "with_flow_head"]
+__all__ = ["MotionConfig", "MotionEncoder", "FlowHeadConfig", "FlowHead", "check_motion_input", "with_flow_head"]
 
 
 @dataclass(frozen=True)
@@ -120,6 +120,13 @@ class FlowHeadConfig:
     """Average the L1 over the moving voxels (nonzero ground-truth flow) and over the static occupied ones apart, and
     the two means equally; False: one mean over every occupied voxel. Moving voxels are a few percent of the occupied
     ones (4 % on the synthetic world): under one mean, zero everywhere is already a low loss."""
+
+
+def check_motion_input(flow: FlowHeadConfig | None, lidar: bool) -> None:
+    """Refuse a flow head whose motion input (``flow.motion``) reads LiDAR sweeps the model does not take."""
+    if flow is not None and flow.motion is not None and not lidar:
+        raise ValueError("flow.motion reads the LiDAR sweeps, which this model does not take at inference (a "
+                         "camera-only model's motion comes from its history frames: temporal)")
 
 
 class FlowHead(nn.Module):
