@@ -319,7 +319,7 @@ def build_cases(work: Path) -> list[Case]:
              contains=("--steps",), check=_absent(out / "demo")),
         Case("demo --steps 0", ["demo", "--steps", "0", "--out", str(out / "demo"), "--data", str(world)],
              contains=("--steps",), check=_absent(out / "demo")),
-        Case("sim --image-size 100000x100000", ["sim", "--out", str(out / "huge"), "--image-size", "100000x100000"],
+        Case("sim --image-size 16000x9000", ["sim", "--out", str(out / "huge"), "--image-size", "16000x9000"],
              contains=("memory",), check=_absent(out / "huge")),
         Case("sim --scenes 100000", ["sim", "--out", str(out / "many"), "--scenes", "100000"], contains=("disk",),
              check=_absent(out / "many")),

@@ -60,16 +60,17 @@ def _image_size(text: str) -> tuple[int, int]:
 
 def _add_sim(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=Path, required=True, help="dataset root to create (nuScenes + Occ3D layout)")
-    parser.add_argument("--scenes", type=integer(1), default=2, help="number of scenes (default 2)")
-    parser.add_argument("--frames", type=integer(1), default=40, help="key frames per scene at 2 Hz (default 40)")
-    parser.add_argument("--seed", type=integer(0), default=0, help="dataset seed (default 0)")
+    parser.add_argument("--scenes", type=integer(1, 1_000_000), default=2, help="number of scenes (default 2)")
+    parser.add_argument("--frames", type=integer(1, 10_000), default=40,
+                        help="key frames per scene at 2 Hz (default 40)")
+    parser.add_argument("--seed", type=integer(0, 2**63 - 1), default=0, help="dataset seed (default 0)")
     parser.add_argument(
         "--image-size", type=_image_size, default=(800, 450), help="camera images WxH (default 800x450)"
     )
     parser.add_argument("--version", default="v1.0-synth", help="table folder name, as nuScenes names it")
     parser.add_argument("--cameras", nargs="+", metavar="CAM", help="camera channels to render (default: all six)")
     parser.add_argument("--surroundocc", action="store_true", help="also write SurroundOcc ground truth")
-    parser.add_argument("--workers", type=integer(1), default=1, help="scenes simulated in parallel processes")
+    parser.add_argument("--workers", type=integer(1, 256), default=1, help="scenes simulated in parallel processes")
     parser.add_argument("--overwrite", action="store_true",
                         help="replace an existing dataset that occkit sim wrote (anything else is refused)")
     parser.add_argument(
@@ -142,13 +143,13 @@ def _add_label(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--densify", choices=("none", "poisson"), default="none",
                         help="poisson: SurroundOcc's surface reconstruction fills gaps between points (needs the "
                         "[labels] extra, open3d)")
-    parser.add_argument("--sweeps", type=integer(0), default=None, metavar="N",
+    parser.add_argument("--sweeps", type=integer(0, 100), default=None, metavar="N",
                         help="non-key sweeps used per key-frame interval (default: all; 0: key frames only)")
-    parser.add_argument("--mask-window", type=integer(0), default=1, metavar="K",
+    parser.add_argument("--mask-window", type=integer(0, 100), default=1, metavar="K",
                         help="mask_lidar casts the sweeps of K key-frame intervals on each side (default 1)")
     parser.add_argument("--scene", dest="scenes", action="append", metavar="NAME",
                         help="label only this scene (repeatable; default: every scene)")
-    parser.add_argument("--workers", type=integer(1), default=1, help="scenes labelled in parallel processes")
+    parser.add_argument("--workers", type=integer(1, 256), default=1, help="scenes labelled in parallel processes")
     parser.add_argument("--overwrite", action="store_true", help="replace a previous occkit label output in --out")
 
 
@@ -195,7 +196,7 @@ def _add_index(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--root", type=Path, required=True, help="dataset root (holds <version>/, samples/, gts/)")
     parser.add_argument("--version", required=True, help="table folder, e.g. v1.0-trainval, v1.0-mini, v1.0-synth")
     parser.add_argument("--out", type=Path, required=True, help="index file to write (.npz of typed columns)")
-    parser.add_argument("--max-sweeps", type=integer(0), default=10,
+    parser.add_argument("--max-sweeps", type=integer(0, 100), default=10,
                         help="earlier LiDAR sweeps per key frame (default 10)")
     parser.add_argument(
         "--split",
@@ -323,7 +324,8 @@ def _add_eval_preds(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--allow-missing", action="store_true", help="score frames without a prediction as all free (counted)"
     )
-    parser.add_argument("--workers", type=integer(1), default=4, help="threads reading and scoring frames (default 4)")
+    parser.add_argument("--workers", type=integer(1, 256), default=4,
+                        help="threads reading and scoring frames (default 4)")
 
 
 def _run_eval_preds(args: argparse.Namespace) -> int:
@@ -477,8 +479,8 @@ def _add_eval(parser: argparse.ArgumentParser) -> None:
                         help="visibility mask for mIoU/IoU (default: the label space's, camera for Occ3D, none for "
                              "SurroundOcc)")
     parser.add_argument("--save-predictions", action="store_true", help="also write <token>.npz predictions")
-    parser.add_argument("--batch-size", type=integer(1), default=1)
-    parser.add_argument("--workers", type=integer(0), default=2, help="data loading processes")
+    parser.add_argument("--batch-size", type=integer(1, 4096), default=1)
+    parser.add_argument("--workers", type=integer(0, 256), default=2, help="data loading processes")
     parser.add_argument("--device", default=None, help="cpu, cuda (default: CUDA when available)")
 
 
@@ -570,8 +572,8 @@ def _add_predict(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--data", type=Path, required=True, help="dataset root (nuScenes layout)")
     parser.add_argument("--split", default="val", help="split to predict: train, val, test, all, ... (default val)")
     parser.add_argument("--out", type=Path, required=True, help="folder for <token>.npz files (Occ3D format)")
-    parser.add_argument("--batch-size", type=integer(1), default=1)
-    parser.add_argument("--workers", type=integer(0), default=2, help="data loading processes")
+    parser.add_argument("--batch-size", type=integer(1, 4096), default=1)
+    parser.add_argument("--workers", type=integer(0, 256), default=2, help="data loading processes")
     parser.add_argument("--device", default=None, help="cpu, cuda (default: CUDA when available)")
 
 
@@ -607,7 +609,7 @@ def _add_demo(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=Path, default=Path("runs/demo"), help="demo folder (default runs/demo)")
     parser.add_argument("--data", type=Path, default=Path("data/demo"),
                         help="synthetic dataset, written first if absent (default data/demo)")
-    parser.add_argument("--steps", type=integer(1), default=None,
+    parser.add_argument("--steps", type=integer(1, 100_000_000), default=None,
                         help="optimizer steps per model (default: each model's own, occkit.demo.DEMO_MODELS)")
 
 
@@ -665,7 +667,8 @@ def _add_export(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--opset", type=integer(18), default=18, help="ONNX opset, 18 or newer (default 18)")
     parser.add_argument("--out", type=Path, required=True, help="the .onnx file; the report goes to FILE.json")
     parser.add_argument("--no-check", action="store_true", help="skip the onnxruntime parity check and timings")
-    parser.add_argument("--repeats", type=integer(1), default=3, help="timed runs for the latencies (default 3)")
+    parser.add_argument("--repeats", type=integer(1, 10_000), default=3,
+                        help="timed runs for the latencies (default 3)")
 
 
 def _run_export(args: argparse.Namespace) -> int:
@@ -720,9 +723,9 @@ def _add_bench(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--precision", choices=("fp32", "bf16", "fp16"), default="fp32",
                         help="fp32, or bf16 / fp16 autocast (fp16 on CUDA only); the GEMM yardstick uses the same")
     parser.add_argument("--batch", type=integer(1, 256), default=1, help="copies of the key frame per pass (default 1)")
-    parser.add_argument("--iters", type=integer(1), default=10, help="timed passes (default 10)")
-    parser.add_argument("--warmup", type=integer(0), default=2, help="untimed passes first (default 2)")
-    parser.add_argument("--threads", type=integer(1), default=None, help="CPU threads (default: PyTorch's)")
+    parser.add_argument("--iters", type=integer(1, 100_000), default=10, help="timed passes (default 10)")
+    parser.add_argument("--warmup", type=integer(0, 10_000), default=2, help="untimed passes first (default 2)")
+    parser.add_argument("--threads", type=integer(1, 1024), default=None, help="CPU threads (default: PyTorch's)")
     parser.add_argument("--data", type=Path, default=None,
                         help="dataset root to take the last key frame from (default: a one-scene 1600x900 "
                              "synthetic world, simulated once into data/bench-1600x900)")  # fmt: skip
@@ -769,9 +772,10 @@ def _add_robustness(parser: argparse.ArgumentParser) -> None:
                         help="robustness.json of a baseline model: adds the corruption errors CE and mCE")
     parser.add_argument("--out", type=Path, help="folder for robustness.json, robustness.md, the plots and the "
                                                  "per-case cache that a rerun resumes from")  # fmt: skip
-    parser.add_argument("--seed", type=integer(0), default=0, help="seed of the corruptions' draws (default 0)")
+    parser.add_argument("--seed", type=integer(0, 2**63 - 1), default=0,
+                        help="seed of the corruptions' draws (default 0)")
     parser.add_argument("--no-rayiou", action="store_true", help="skip RayIoU (mIoU and IoU only)")
-    parser.add_argument("--workers", type=integer(0), default=1, help="data loading processes (default 1)")
+    parser.add_argument("--workers", type=integer(0, 256), default=1, help="data loading processes (default 1)")
     parser.add_argument("--device", default=None, help="cpu, cuda (default: CUDA when available)")
     parser.add_argument("--list", action="store_true", help="list the corruptions and their levels, and exit")
 
@@ -839,14 +843,15 @@ def _add_viz(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--label-space", choices=LABEL_SPACE_NAMES, default=None,
                         help="labels and predictions to draw (default: the checkpoint's, else occ3d)")
     frames = parser.add_mutually_exclusive_group()
-    frames.add_argument("--frames", type=integer(1), default=3, help="frames spread evenly over the split (default 3)")
+    frames.add_argument("--frames", type=integer(1, 10_000), default=3,
+                        help="frames spread evenly over the split (default 3)")
     frames.add_argument("--token", nargs="+", default=(), metavar="TOKEN", help="sample tokens to render instead")
     predictions = parser.add_mutually_exclusive_group()
     predictions.add_argument("--pred", type=Path, metavar="DIR",
                              help="folder of <token>.npz predictions (as occkit predict writes them)")
     predictions.add_argument("--ckpt", type=Path, metavar="FILE", help="predict on the fly with this checkpoint")
     parser.add_argument("--device", default="cpu", help="where --ckpt's model runs (default cpu)")
-    parser.add_argument("--sweeps", type=integer(0), default=0,
+    parser.add_argument("--sweeps", type=integer(0, 100), default=0,
                         help="earlier LiDAR sweeps added to the key frame in the LiDAR overlay (default 0)")
     parser.add_argument("--display-width", type=integer(16, 8192), default=800,
                         help="camera images wider than this are shown resized to it (default 800 px)")
@@ -885,7 +890,7 @@ def _add_view(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--split", default="val", help="split the scene belongs to (default val)")
     parser.add_argument("--version", default="v1.0-synth", help="table folder under --data (default v1.0-synth)")
     parser.add_argument("--scene", default=None, metavar="NAME", help="scene to show (default: the split's first)")
-    parser.add_argument("--frames", type=integer(1), default=None, metavar="N",
+    parser.add_argument("--frames", type=integer(1, 100_000), default=None, metavar="N",
                         help="only the scene's first N key frames (default: all)")
     parser.add_argument("--label-space", choices=LABEL_SPACE_NAMES, default=None,
                         help="labels and predictions to show (default: the checkpoint's, else occ3d)")

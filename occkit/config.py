@@ -17,10 +17,12 @@ plain YAML. Loading checks every key and type: a typo is an error that lists the
 from __future__ import annotations
 
 import ast
+import contextlib
 import dataclasses
 import difflib
 import functools
 import inspect
+import math
 import textwrap
 import types
 import typing
@@ -41,6 +43,7 @@ __all__ = [
     "apply_overrides",
     "override_dict",
     "field_docs",
+    "check_ranges",
 ]
 
 C = TypeVar("C")
@@ -123,14 +126,18 @@ def _convert_scalar(value: Any, tp: Any, key: str) -> Any:
         if isinstance(value, int) and not isinstance(value, bool):
             return value
     elif tp is float:
+        number = None
         if isinstance(value, (int, float)) and not isinstance(value, bool):
-            return float(value)
-        if isinstance(value, str):
+            number = float(value)
+        elif isinstance(value, str):
             # PyYAML follows YAML 1.1, which reads "1e-4" (no dot) as a string; users mean a number.
-            try:
-                return float(value)
-            except ValueError:
-                pass
+            with contextlib.suppress(ValueError):
+                number = float(value)
+        if number is not None:
+            # No setting of occkit means "not a number" or "infinite": a NaN rate or size would run on silently.
+            if not math.isfinite(number):
+                raise ConfigError(f"{key}: expected a finite number, got {value!r}")
+            return number
     elif tp is str:
         if isinstance(value, str):
             return value
@@ -185,6 +192,26 @@ def from_dict(cls: type[C], data: Mapping[str, Any], where: str = "config") -> C
         if isinstance(error, ConfigError):
             raise
         raise ConfigError(f"{where}: {error}") from error
+
+
+# ----------------------------------------------------------------------------------------------- ranges
+def check_ranges(prefix: str, cfg: Any, ranges: Mapping[str, tuple[float, float]]) -> None:
+    """Refuse a numeric field of ``cfg`` outside its inclusive ``(low, high)`` range.
+
+    Every numeric setting has both bounds, physical or practical, so that a typo such as ``density=1e308`` or
+    ``max_steps=-5`` is refused before any work instead of hanging, overflowing or doing nothing. Tuple fields are
+    checked element by element. The message names ``prefix.field`` (e.g. ``train.max_steps``).
+    """
+    for name, (low, high) in ranges.items():
+        value = getattr(cfg, name)
+        for item in value if isinstance(value, tuple) else (value,):
+            if not low <= item <= high:
+                where = f"{prefix}.{name}" if prefix else name
+                raise ConfigError(f"{where} must be between {_number(low)} and {_number(high)}, got {value!r}")
+
+
+def _number(value: float) -> str:
+    return str(value) if isinstance(value, int) else f"{value:g}"
 
 
 # ----------------------------------------------------------------------------------------------- overrides

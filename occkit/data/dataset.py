@@ -27,6 +27,7 @@ from PIL import Image
 from torch import Tensor
 
 from occkit.classes import DETECTION_CLASSES
+from occkit.config import check_ranges
 from occkit.data.corruptions import SampleCorruption
 from occkit.data.index import (
     FrameRecord,
@@ -73,6 +74,12 @@ _IMAGENET_STD = (58.395, 57.12, 57.375)
 
 class SampleError(InputError, RuntimeError):
     """A sample cannot be loaded; the message names the sample token and the file."""
+
+
+#: Inclusive bounds of the dataset's numeric settings (nuScenes has 10 sweeps per key frame and 32 LiDAR beams).
+_DATASET_RANGES = {"sweeps": (-1, 100), "history": (0, 100), "camera_dropout": (0.0, 1.0),
+                   "lidar_beams_every": (1, 64), "point_dropout": (0.0, 1.0), "corruption_severity": (1, 100),
+                   "depth_downsample": (0, 256), "seed": (0, 2**63 - 1)}  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -139,6 +146,7 @@ class DatasetConfig:
     """Seed of the augmentation draws."""
 
     def __post_init__(self) -> None:
+        check_ranges("data", self, _DATASET_RANGES)
         if self.flow and not self.occupancy:
             raise ValueError("flow = true needs occupancy = true: the flow is read from the occupancy label files")
         if self.depth_downsample and self.sweeps < 0:

@@ -24,6 +24,7 @@ import torch
 from PIL import Image
 from torch import Tensor
 
+from occkit.config import check_ranges
 from occkit.geometry.camera import image_aug_matrix
 from occkit.geometry.grid import VoxelGrid
 from occkit.geometry.se3 import invert_transform, rotation_about_z, transform_points
@@ -73,6 +74,9 @@ class ImageAugConfig:
             raise ValueError(f"final_size must be two positive integers (H, W), got {self.final_size!r}")
         _check_range(self.resize_range, "resize_range")
         _check_range(self.rotate_deg, "rotate_deg")
+        # A resize offset past +-1 scales an image to nothing or to many times the memory of the final size.
+        check_ranges("image_aug", self, {"final_size": (1, 8192), "resize_range": (-0.9, 4.0),
+                                         "rotate_deg": (-180.0, 180.0)})  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -192,6 +196,7 @@ class BevAugConfig:
                 raise ValueError(f"{name} is a probability in [0, 1], got {getattr(self, name)}")
         _check_range(self.rotate_deg, "rotate_deg")
         _check_range(self.scale, "scale")
+        check_ranges("bev_aug", self, {"rotate_deg": (-180.0, 180.0), "scale": (0.0, 10.0)})
         if self.scale[0] <= 0:
             raise ValueError(f"scale must be positive, got {self.scale!r}")
 

@@ -8,6 +8,7 @@ import dataclasses
 import math
 from dataclasses import dataclass, field
 
+from occkit.config import check_ranges
 from occkit.nuscenes import CAMERAS
 from occkit.sim.rig import camera_rig
 
@@ -21,6 +22,13 @@ __all__ = [
     "scene_name",
     "camera_time_offsets_us",
 ]
+
+#: Inclusive bounds of the world's settings. Speeds are physical (the ego's 40 m/s is 144 km/h; objects move at a
+#: fraction of it, and flow above 100 m/s is refused everywhere); the others keep a scene finite: each object is placed
+#: by a walk whose step shrinks with the density, and the ground raster grows with the margin over the resolution.
+_WORLD_RANGES = {"duration": (0.05, 3600.0), "ego_speed": (0.0, 40.0), "ground_resolution": (0.02, 2.0),
+                 "margin": (0.0, 500.0), "density": (0.0, 10.0)}  # fmt: skip
+
 
 @dataclass(frozen=True)
 class WorldConfig:
@@ -44,14 +52,19 @@ class WorldConfig:
         for name in ("duration", "ground_resolution", "density"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
-        if self.margin < 0:
-            raise ValueError(f"margin must be non-negative, got {self.margin}")
+        check_ranges("world", self, _WORLD_RANGES)
 
 
 KEY_FRAME_INTERVAL_US = 500_000  # 2 Hz key frames
 SWEEP_INTERVAL_US = 50_000  # 20 Hz LiDAR
 SWEEPS_PER_KEY_FRAME = KEY_FRAME_INTERVAL_US // SWEEP_INTERVAL_US
 FIRST_TIMESTAMP_US = 1_700_000_000_000_000  # microseconds, like nuScenes timestamps
+
+
+#: Inclusive bounds of the dataset's settings (the machine's disk and memory are checked beside them).
+_SIM_RANGES = {"scenes": (1, 1_000_000), "frames": (1, 10_000), "seed": (0, 2**63 - 1), "image_size": (16, 16384),
+               "val_fraction": (0.0, 1.0), "mask_window": (0, 100), "lidar_dropout": (0.0, 1.0),
+               "jpeg_quality": (1, 100)}  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -100,6 +113,7 @@ class SimConfig:
             raise ValueError(f"mask_window must be >= 0, got {self.mask_window}")
         if not 0.0 <= self.lidar_dropout < 1.0:
             raise ValueError(f"lidar_dropout must be in [0, 1), got {self.lidar_dropout}")
+        check_ranges("", self, _SIM_RANGES)
 
     @property
     def duration(self) -> float:
