@@ -909,9 +909,13 @@ def _add_view(parser: argparse.ArgumentParser) -> None:
                         help="HTTP port of the web viewer with --serve (default 9090)")
     parser.add_argument("--grpc-port", type=integer(1, 65535), default=9876,
                         help="port of the recording's gRPC server with --serve (default 9876)")
+    parser.add_argument("--bind", default="127.0.0.1", metavar="ADDR",
+                        help="address --serve listens on (default 127.0.0.1: this machine only; 0.0.0.0 lets every "
+                             "machine that reaches this one read the scene)")  # fmt: skip
 
 
 def _run_view(args: argparse.Namespace) -> int:
+    import signal
     import time
 
     input_folder(args.data, "--data")
@@ -924,6 +928,9 @@ def _run_view(args: argparse.Namespace) -> int:
         if args.save.suffix != ".rrd":
             raise UsageError(f"--save {args.save} must be a .rrd file")
     check_device(args.device)
+    from occkit.viz.serving import check_bind, is_loopback, start_server
+
+    check_bind(args.bind)
     try:
         from occkit.viz.recording import ViewConfig, new_recording, open_scene, record_scene, start_sink
     except ModuleNotFoundError as error:
@@ -934,28 +941,40 @@ def _run_view(args: argparse.Namespace) -> int:
                         frames=args.frames, pred=None if args.pred is None else str(args.pred),
                         ckpt=None if args.ckpt is None else str(args.ckpt), label_space=args.label_space,
                         device=args.device)  # fmt: skip
-    scene = open_scene(config)
-    recording = new_recording()
-    address = start_sink(recording, scene.blueprint(), save=args.save, serve=args.serve, web_port=args.web_port,
-                         grpc_port=args.grpc_port)  # fmt: skip
-    start = time.perf_counter()
-    frames = record_scene(scene, recording, progress=print)
-    recording.flush()
-    seconds = time.perf_counter() - start
-    if args.save is not None:
-        recording.disconnect()  # closes the file
-        print(f"wrote {len(frames)} frames of {scene.name} to {args.save} ({args.save.stat().st_size / 1e6:.1f} MB, "
-              f"{seconds:.1f} s); open it with: rerun {args.save}")
-        return 0
-    if address is None:
-        print(f"sent {len(frames)} frames of {scene.name} to the viewer ({seconds:.1f} s)")
-        return 0
-    print(f"serving {len(frames)} frames of {scene.name}: open {address} in a browser (Ctrl-C stops the server)")
+    server = None
+    if args.serve:
+        if not is_loopback(args.bind):
+            print(f"warning: --bind {args.bind} serves the scene to every machine that can reach this one on ports "
+                  f"{args.web_port} and {args.grpc_port}", file=sys.stderr)
+        server = start_server(args.bind, args.web_port, args.grpc_port)  # the ports are checked before any work
+        # `kill` as well as Ctrl-C stops the child server: SystemExit runs the `finally` below.
+        signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
     try:
-        while True:
-            time.sleep(3600)
+        scene = open_scene(config)
+        recording = new_recording()
+        start_sink(recording, scene.blueprint(), save=args.save, server=server)
+        start = time.perf_counter()
+        frames = record_scene(scene, recording, progress=print)
+        recording.flush()
+        seconds = time.perf_counter() - start
+        if args.save is not None:
+            recording.disconnect()  # closes the file
+            print(f"wrote {len(frames)} frames of {scene.name} to {args.save} ({args.save.stat().st_size / 1e6:.1f} "
+                  f"MB, {seconds:.1f} s); open it with: rerun {args.save}")
+            return 0
+        if server is None:
+            print(f"sent {len(frames)} frames of {scene.name} to the viewer ({seconds:.1f} s)")
+            return 0
+        print(f"serving {len(frames)} frames of {scene.name} on {args.bind}: open {server.web_url} in a browser "
+              "(Ctrl-C stops the server)")
+        while server.process.poll() is None:
+            time.sleep(1)
+        raise OSError(f"the rerun server stopped: {server.last_words()}")
     except KeyboardInterrupt:
         return 0
+    finally:
+        if server is not None:
+            server.stop()
 
 
 Command = tuple[str, Callable[[argparse.ArgumentParser], None], Callable[[argparse.Namespace], int]]

@@ -36,7 +36,6 @@ import uuid
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from urllib.parse import quote
 
 import numpy as np
 import rerun as rr
@@ -62,6 +61,7 @@ from occkit.viz.errors import (
     voxel_outcomes,
 )
 from occkit.viz.run import Predictor, folder_predictor
+from occkit.viz.serving import ViewerServer
 
 __all__ = [
     "FRAME",
@@ -537,28 +537,21 @@ def record_scene(scene: Scene, recording: rr.RecordingStream | None = None,
 
 
 def start_sink(recording: rr.RecordingStream, blueprint: rrb.Blueprint, save: str | Path | None = None,
-               serve: bool = False, web_port: int = 9090, grpc_port: int = 9876) -> str | None:  # fmt: skip
-    """Send a recording where it is seen, before anything is logged: to a file (``save``), to a web viewer served
-    from this process (``serve``: rerun's gRPC server buffers the data for viewers that connect later), or else to
-    a native viewer it spawns. ``blueprint`` becomes the recording's default layout.
-
-    Returns:
-        with ``serve``, the web viewer's address (the recording's gRPC address is in its ``url`` parameter).
-    """
+               server: ViewerServer | None = None) -> None:  # fmt: skip
+    """Send a recording where it is seen, before anything is logged: to a file (``save``), to a running web viewer
+    server (``server``, :func:`occkit.viz.serving.start_server`: it buffers the data for viewers that connect later),
+    or else to a native viewer it spawns. ``blueprint`` becomes the recording's default layout."""
     if save is not None:
         Path(save).parent.mkdir(parents=True, exist_ok=True)
         recording.save(save, default_blueprint=blueprint)
-        return None
-    if serve:
-        # A scene of real data is a few hundred MB: the server keeps all of it for viewers that connect later.
-        address = recording.serve_grpc(grpc_port=grpc_port, default_blueprint=blueprint, server_memory_limit="25%")
-        rr.serve_web_viewer(web_port=web_port, open_browser=False, connect_to=address)
-        return f"http://localhost:{web_port}/?url={quote(address, safe='')}"
+        return
+    if server is not None:
+        recording.connect_grpc(server.grpc_url, default_blueprint=blueprint)
+        return
     # The viewer the SDK installed beside this interpreter, also when its environment is not on PATH (rerun looks
     # on PATH only).
     viewer = shutil.which("rerun", path=str(Path(sys.executable).parent))
     rr.spawn(default_blueprint=blueprint, executable_path=viewer, recording=recording)
-    return None
 
 
 def new_recording() -> rr.RecordingStream:
