@@ -40,6 +40,8 @@ class Case:
     """``error``: exit code 2 and one stderr line; ``ok``: exit code 0."""
     contains: tuple[str, ...] = ()
     """Texts the error line (or, for ``ok``, stdout + stderr) must hold."""
+    lacks: tuple[str, ...] = ()
+    """Texts it must not hold (a library's boilerplate, such as torch's advice to unpickle with weights_only=False)."""
     check: Callable[[], str | None] | None = None
     """A post-condition: None when it holds, else what is wrong."""
     result: dict = field(default_factory=dict)
@@ -51,7 +53,7 @@ def _occkit(argv: list[str], cwd: Path, timeout: float = 600) -> subprocess.Comp
                           timeout=timeout)  # fmt: skip
 
 
-def _error_lines(stderr: str) -> list[str]:
+def error_lines(stderr: str) -> list[str]:
     lines = []
     for line in stderr.replace("\r", "\n").splitlines():
         if line.strip() and not _PROGRESS.search(line) and not line.startswith("WARNING:"):
@@ -62,7 +64,7 @@ def _error_lines(stderr: str) -> list[str]:
 def run_case(case: Case, cwd: Path) -> dict:
     started = time.perf_counter()
     process = _occkit(case.argv, cwd)
-    lines = _error_lines(process.stderr)
+    lines = error_lines(process.stderr)
     problems = []
     traceback = "Traceback (most recent call last)" in process.stderr
     if traceback:
@@ -79,6 +81,7 @@ def run_case(case: Case, cwd: Path) -> dict:
             problems.append(f"exit code {process.returncode}, expected 0")
         text = process.stdout + process.stderr
     problems += [f"message lacks {needle!r}" for needle in case.contains if needle not in text]
+    problems += [f"message holds {needle!r}" for needle in case.lacks if needle in text]
     if case.check is not None:
         failed = case.check()
         if failed:
@@ -327,7 +330,109 @@ def build_cases(work: Path) -> list[Case]:
         Case("resume with --set train.lr=0.5", ["train", "--config", "flashocc_tiny", "--out", str(run), "--resume",
              "auto", "--no-progress", *_run_sets(world), "--set", "train.lr=0.5"], contains=("train.lr",)),
     ]
+    cases += _crafted_file_cases(work, world, ckpt)
     return cases
+
+
+def _crafted_file_cases(work: Path, world: Path, ckpt: str) -> list[Case]:
+    """What a hostile but realistic user hands occkit: archive bombs, refused pickles, random bytes, NaN weights,
+    settings past every physical bound, report names that collide with outputs."""
+    import numpy as np
+    import torch
+
+    files, out = work / "files", work / "out"
+    files.mkdir(parents=True, exist_ok=True)
+    (files / "random.pt").write_bytes(np.random.default_rng(0).bytes(4096))
+    torch.save({"meta": System()}, files / "system.pt")
+    torch.save({"state_dict": {"img_backbone.conv1.weight": torch.full((4, 3, 3, 3), float("nan"))}}, files / "nan.pt")
+    torch_zip_bomb(files / "bomb.pt")
+    preds = files / "preds"
+    preds.mkdir(exist_ok=True)
+    npz_bomb(preds / f"{_val_sample(world)['token']}.npz")
+    user = work / "user" / "labels"
+    user.mkdir(parents=True, exist_ok=True)
+    (user / "notes").mkdir(exist_ok=True)
+    (user / "notes" / "mine.txt").write_text("mine\n")
+    convert = ["convert", "--model", "flashocc_tiny", "--out"]
+    return [
+        Case("convert a 2 GiB zip bomb", [*convert, str(out / "bomb.safetensors"), str(files / "bomb.pt")],
+             contains=("bomb.pt",), check=_absent(out / "bomb.safetensors")),
+        Case("convert a pickle calling os.system", [*convert, str(out / "sys.safetensors"), str(files / "system.pt")],
+             contains=("system",), lacks=("weights_only",)),
+        Case("convert random bytes", [*convert, str(out / "rnd.safetensors"), str(files / "random.pt")],
+             contains=("random.pt",), lacks=("weights_only",)),
+        Case("convert all-NaN weights", [*convert, str(out / "nan.safetensors"), str(files / "nan.pt")],
+             contains=("nan.pt",), check=_absent(out / "nan.safetensors")),
+        Case("eval --ckpt random bytes", ["eval", "--ckpt", str(files / "random.pt"), "--data", str(world), "--out",
+             str(out / "eval-random")], contains=("random.pt",)),
+        Case("eval-preds with a (200, 200, 40000) header", ["eval-preds", "--gt", str(world / "gts"), "--preds",
+             str(preds), "--out", str(out / "preds-bomb"), "--allow-missing"], contains=("semantics",)),
+        Case("sim --set world.density=1e308", ["sim", "--out", str(out / "dense"), "--set", "world.density=1e308"],
+             contains=("world.density",), check=_absent(out / "dense")),
+        Case("train --set train.max_steps=-5", ["train", "--config", "flashocc_tiny", "--out", str(out / "neg"),
+             "--set", f"data.root={world}", "--set", "train.max_steps=-5"], contains=("train.max_steps",),
+             check=_absent(out / "neg")),
+        Case("train --set train.lr=nan", ["train", "--config", "flashocc_tiny", "--out", str(out / "nan-lr"),
+             "--set", f"data.root={world}", "--set", "train.lr=nan"], contains=("train.lr",),
+             check=_absent(out / "nan-lr")),
+        Case("label --overwrite of a user's folder", ["label", "--root", str(world), "--version", VERSION, "--out",
+             str(user), "--overwrite"], check=_still_there(user / "notes" / "mine.txt", "mine\n")),
+        Case("export --out model.json", ["export", "--model", "flashocc_tiny", "--no-check", "--out",
+             str(out / "x" / "model.json")], contains=("model.json",)),
+        Case("view --bind a name", ["view", "--data", str(world), "--serve", "--bind", "everywhere"],
+             contains=("--bind",)),
+        Case("robustness --ckpt random bytes", ["robustness", "--ckpt", str(files / "random.pt"), "--out",
+             str(out / "rob")], contains=("random.pt",)),
+    ]  # fmt: skip
+
+
+class System:
+    """Unpickles as a call of ``os.system``: what a malicious checkpoint holds."""
+
+    def __reduce__(self):
+        return os.system, ("true",)
+
+
+def zip_bomb(path: Path, member: str, size: int, header: bytes = b"", mode: str = "w") -> None:
+    """Add ``member`` to the zip at ``path``: ``header`` then zeros up to ``size`` bytes, deflated to a few MB."""
+    import zipfile
+
+    with (zipfile.ZipFile(path, mode, compression=zipfile.ZIP_DEFLATED) as archive,
+          archive.open(member, "w", force_zip64=True) as stream):  # fmt: skip
+        stream.write(header)
+        chunk = bytes(1 << 24)
+        for _ in range(size // len(chunk)):
+            stream.write(chunk)
+
+
+def torch_zip_bomb(path: Path) -> None:
+    """A torch checkpoint whose one tensor record inflates to 2 GiB (a 2 MB file)."""
+    import zipfile
+
+    import torch
+
+    torch.save({"weight": torch.zeros(4)}, path)
+    with zipfile.ZipFile(path) as original:
+        entries = {info.filename: original.read(info) for info in original.infolist()}
+    record = next(name for name in entries if name.endswith("data/0"))
+    with zipfile.ZipFile(path, "w") as archive:
+        for name, data in entries.items():
+            if name != record:
+                archive.writestr(name, data)
+    zip_bomb(path, record, 1 << 31, mode="a")
+
+
+def npz_bomb(path: Path) -> None:
+    """An Occ3D prediction whose ``semantics.npy`` header declares (200, 200, 40000) uint8: 1.6 GB from 1.5 MB."""
+    import io
+
+    import numpy as np
+
+    header = io.BytesIO()
+    np.lib.format.write_array_header_1_0(header, {"descr": "|u1", "fortran_order": False, "shape": (200, 200, 40000)})
+    zip_bomb(path, "semantics.npy", 1 << 27, header.getvalue())
+
+
 
 
 def _replace_target(copy: Path, original_file: Path, world: Path) -> Path:

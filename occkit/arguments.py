@@ -66,12 +66,18 @@ def number(minimum: float | None = None, maximum: float | None = None) -> Callab
 
 
 def _check_range(value: float, minimum: float | None, maximum: float | None, text: str) -> None:
+    low, high = _bound(minimum), _bound(maximum)
     if minimum is not None and maximum is not None and not minimum <= value <= maximum:
-        raise argparse.ArgumentTypeError(f"must be between {minimum:g} and {maximum:g}, got {text}")
+        raise argparse.ArgumentTypeError(f"must be between {low} and {high}, got {text}")
     if minimum is not None and value < minimum:
-        raise argparse.ArgumentTypeError(f"must be >= {minimum:g}, got {text}")
+        raise argparse.ArgumentTypeError(f"must be >= {low}, got {text}")
     if maximum is not None and value > maximum:
-        raise argparse.ArgumentTypeError(f"must be <= {maximum:g}, got {text}")
+        raise argparse.ArgumentTypeError(f"must be <= {high}, got {text}")
+
+
+def _bound(value: float | None) -> str:
+    # An integer bound is printed whole: "100000000", not "1e+08".
+    return str(value) if isinstance(value, int) else f"{value:g}" if value is not None else ""
 
 
 # ----------------------------------------------------------------------------------------------------- paths
@@ -83,13 +89,17 @@ def _ancestor_file(path: Path) -> Path | None:
     return None
 
 
-def output_file(path: Path, option: str) -> Path:
-    """``path`` can be written as a file: it is not a folder and no ancestor is a file."""
+def output_file(path: Path, option: str, suffix: str | None = None, what: str = "the file") -> Path:
+    """``path`` can be written as a file: it is not a folder and no ancestor is a file; with ``suffix``, its name
+    ends in it (a name promising another format, ``index.json`` for a ``.npz``, is refused)."""
     if path.is_dir():
         raise UsageError(f"{option} {path} is a folder; give a file name")
     blocker = _ancestor_file(path)
     if blocker is not None:
         raise UsageError(f"{option} {path} cannot be created: {blocker} is a file, not a folder")
+    if suffix is not None and path.suffix.lower() != suffix:
+        raise UsageError(f"{option} {path}: {what} is a {suffix} file, whatever its name says; name it "
+                         f"{path.with_suffix(suffix).name}")  # fmt: skip
     return path
 
 

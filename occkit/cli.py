@@ -26,7 +26,7 @@ from occkit.arguments import (
     output_file,
     output_folder,
 )
-from occkit.errors import UsageError
+from occkit.errors import MissingDependencyError, UsageError
 
 #: The names of :data:`occkit.label_space.LABEL_SPACES`, spelled out so that ``occkit --help`` imports no torch
 #: (``tests/test_cli.py`` keeps them equal).
@@ -89,13 +89,15 @@ def _run_sim(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from occkit.config import apply_overrides
-    from occkit.sim.generate import SimConfig, check_output, estimate_resources, simulate_dataset
+    from occkit.outputs import OutputLock, check_not_inside
+    from occkit.sim.generate import COMMAND, SimConfig, check_output, estimate_resources, simulate_dataset
 
     output_folder(args.out, "--out")
     check_output(args.out, args.overwrite)
     for option, path in (("--preview", args.preview), ("--json", args.json)):
         if path is not None:
             output_file(path, option)
+            check_not_inside(path, args.out, option)  # the dataset is renamed into place over --out
 
     options = {
         "scenes": args.scenes,
@@ -113,7 +115,8 @@ def _run_sim(args: argparse.Namespace) -> int:
     check_memory(workers * needs["memory_per_worker"], f"simulating {workers} scene(s) at once at "
                  f"{config.image_size[0]}x{config.image_size[1]}", "--image-size/--workers")
     check_disk(args.out, needs["disk"], f"{config.scenes} scene(s) of {config.frames} key frames", "--out")
-    with tqdm(total=config.scenes * config.frames, unit="frame", desc="sim") as bar:
+    # Locked before the progress bar shows: a second run into the folder ends as one line (simulate_dataset nests).
+    with OutputLock(args.out, COMMAND), tqdm(total=config.scenes * config.frames, unit="frame", desc="sim") as bar:
         summary = simulate_dataset(
             config, args.out, workers=args.workers, overwrite=args.overwrite, progress=bar.update
         )
@@ -156,7 +159,8 @@ def _add_label(parser: argparse.ArgumentParser) -> None:
 def _run_label(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
-    from occkit.labeling.pipeline import LabelConfig, check_label_output, label_dataset
+    from occkit.labeling.pipeline import COMMAND, LabelConfig, check_label_output, label_dataset
+    from occkit.outputs import OutputLock
 
     input_folder(args.root, "--root")
     output_folder(args.out, "--out")
@@ -168,7 +172,9 @@ def _run_label(args: argparse.Namespace) -> int:
 
         require_open3d()  # fail before any work
 
-    with tqdm(unit="frame", desc="label", delay=0.5) as bar:  # delayed: a bad dataset fails before it shows
+    # Locked before the progress bar: a second run into the folder ends as one line (label_dataset nests). The bar
+    # is delayed: a bad dataset fails before it shows.
+    with OutputLock(args.out, COMMAND), tqdm(unit="frame", desc="label", delay=0.5) as bar:
 
         def scene_done(summary: dict) -> None:
             points = summary["points"]
@@ -224,7 +230,8 @@ def _add_index(parser: argparse.ArgumentParser) -> None:
 
 def _run_index(args: argparse.Namespace) -> int:
     input_folder(args.root, "--root")
-    output_file(args.out, "--out")
+    # The index is always a .npz (its readers go by content): a .json name would promise what it does not hold.
+    output_file(args.out, "--out", suffix=".npz", what="an occkit index")
     if args.from_info is not None:
         return _index_from_info(args)
     from tqdm import tqdm
@@ -360,6 +367,7 @@ def _run_eval_preds(args: argparse.Namespace) -> int:
     if frames is not None and space.name == "occ3d":  # an Occ3D tree may cover a subset of the tables' frames
         frames = {token: frame for token, frame in frames.items() if (args.gt / frame[0] / token).is_dir()}
     count = len(find_gt_labels(args.gt, space, frames))
+    notes: list[str] = []  # printed once the progress bar is done
     with tqdm(total=count, unit="frame", desc="eval") as bar:
         result = evaluate_predictions(
             args.gt,
@@ -372,7 +380,10 @@ def _run_eval_preds(args: argparse.Namespace) -> int:
             progress=bar.update,
             space=space,
             frames=frames,
+            note=notes.append,
         )
+    for note in notes:
+        print(f"note: {note}")
     print(markdown_table(result), end="")
     for path in write_report(result, args.out).values():
         print(f"wrote {path}")
@@ -434,11 +445,20 @@ def _load_trained(args: argparse.Namespace, device):
 
 
 def _run_train(args: argparse.Namespace) -> int:
-    from occkit import zoo
-    from occkit.engine.train import check_initial_weights, train
+    from occkit.outputs import OutputLock
 
     output_folder(args.out, "--out")
     check_device(args.device)
+    # One run per folder, refused before the experiment is read; train() takes the lock again (nested) and
+    # summary.json is written under it. Under torchrun rank 0 holds it.
+    with OutputLock(args.out, "occkit train", enabled=_is_main_process()):
+        return _train_locked(args)
+
+
+def _train_locked(args: argparse.Namespace) -> int:
+    from occkit import zoo
+    from occkit.engine.train import check_initial_weights, train
+
     experiment = zoo.load_experiment(args.config, args.set)
     if args.resume is None and _is_main_process():
         check_initial_weights(experiment)  # a missing weights file is named before anything else is looked at
@@ -583,10 +603,14 @@ def _run_predict(args: argparse.Namespace) -> int:
     from occkit.engine import distributed
     from occkit.engine.evaluate import evaluation_dataset
     from occkit.engine.predict import predict_to_folder
+    from occkit.outputs import OutputLock
 
     _check_trained_run_args(args)
     context = distributed.setup(args.device)  # under torchrun each rank writes the files of its share
+    # One run at a time per folder, refused before the model is loaded; rank 0 holds the lock for the whole group.
+    lock = OutputLock(args.out, "occkit predict", enabled=context.is_main)
     try:
+        lock.acquire()
         model, experiment = _load_trained(args, context.device)
         dataset = evaluation_dataset(experiment, args.data, args.split, labels=False)
         if context.is_main:
@@ -600,6 +624,7 @@ def _run_predict(args: argparse.Namespace) -> int:
             skipped = f"; {counts['skipped']} frame(s) failed to load and were skipped" if counts["skipped"] else ""
             print(f"wrote {counts['written']} predictions to {args.out}{skipped} (score them with occkit eval-preds)")
     finally:
+        lock.release()
         distributed.teardown()
     return 0
 
@@ -662,9 +687,11 @@ def _add_export(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--data", type=Path, default=None,
                         help="nuScenes-layout dataset whose rig the graph is made for (default: a one-scene "
                              "synthetic world generated in a temporary folder)")
-    parser.add_argument("--sample", type=integer(0), default=None,
+    # nuScenes trainval has 34,149 key frames; the dataset's own length is checked once it is read.
+    parser.add_argument("--sample", type=integer(0, 10_000_000), default=None,
                         help="key frame of --data (split all) used as the reference (default: the last)")
-    parser.add_argument("--opset", type=integer(18), default=18, help="ONNX opset, 18 or newer (default 18)")
+    # The installed onnx package's newest opset is checked before the export (occkit.export.check_opset).
+    parser.add_argument("--opset", type=integer(18, 1000), default=18, help="ONNX opset, 18 or newer (default 18)")
     parser.add_argument("--out", type=Path, required=True, help="the .onnx file; the report goes to FILE.json")
     parser.add_argument("--no-check", action="store_true", help="skip the onnxruntime parity check and timings")
     parser.add_argument("--repeats", type=integer(1, 10_000), default=3,
@@ -672,9 +699,10 @@ def _add_export(parser: argparse.ArgumentParser) -> None:
 
 
 def _run_export(args: argparse.Namespace) -> int:
-    from occkit.export import ExportError, check_opset, export_model
+    from occkit.export import ExportError, check_export_output, check_opset, export_model
 
     output_file(args.out, "--out")
+    check_export_output(args.out)  # a .onnx name, and its FILE.json replaces nothing but an earlier report
     if args.ckpt is not None:
         input_file(args.ckpt, "--ckpt")
     if args.data is not None:
@@ -811,6 +839,7 @@ def _run_robustness(args: argparse.Namespace) -> int:
         input_file(args.baseline, "--baseline")
     output_folder(args.out, "--out")
     check_device(args.device)
+    from occkit.outputs import OutputLock
     from occkit.robustness import parse_suite, run_robustness
 
     try:
@@ -818,15 +847,24 @@ def _run_robustness(args: argparse.Namespace) -> int:
     except ValueError as error:
         raise UsageError(str(error)) from None
     device = args.device or ("cuda" if torch.cuda.is_available() else "cpu")
-    with tqdm(total=0, unit="frame", desc="robustness") as bar:
-        def progress(done: int, total: int, label: str) -> None:
-            bar.total = total
-            bar.set_description(label, refresh=False)
-            bar.update(done - bar.n)
+    bar = None  # opened by the first frame: an error before it stays the one line on stderr
 
-        report = run_robustness(args.ckpt, args.out, data=args.data, split=args.split, suite=args.suite,
-                                baseline=args.baseline, workers=args.workers, device=device,
-                                rayiou=not args.no_rayiou, seed=args.seed, log=tqdm.write, progress=progress)
+    def progress(done: int, total: int, label: str) -> None:
+        nonlocal bar
+        if bar is None:
+            bar = tqdm(total=total, unit="frame")
+        bar.total = total
+        bar.set_description(label, refresh=False)
+        bar.update(done - bar.n)
+
+    try:
+        with OutputLock(args.out, "occkit robustness"):  # one run at a time writes the cases and the report
+            report = run_robustness(args.ckpt, args.out, data=args.data, split=args.split, suite=args.suite,
+                                    baseline=args.baseline, workers=args.workers, device=device,
+                                    rayiou=not args.no_rayiou, seed=args.seed, log=tqdm.write, progress=progress)
+    finally:
+        if bar is not None:
+            bar.close()
     print((args.out / "robustness.md").read_text(), end="")
     written = [name for name in ("robustness.json", "robustness.md", "resilience.png", "severity.png")
                if (args.out / name).is_file()]  # severity.png: only with a corruption of severities
@@ -887,9 +925,10 @@ def _run_viz(args: argparse.Namespace) -> int:
 # ----------------------------------------------------------------------------------------------------- view
 def _add_view(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--data", type=Path, required=True, help="dataset root (nuScenes layout)")
-    parser.add_argument("--split", default="val", help="split the scene belongs to (default val)")
+    parser.add_argument("--split", default="val", help="split whose first scene is shown without --scene (default val)")
     parser.add_argument("--version", default="v1.0-synth", help="table folder under --data (default v1.0-synth)")
-    parser.add_argument("--scene", default=None, metavar="NAME", help="scene to show (default: the split's first)")
+    parser.add_argument("--scene", default=None, metavar="NAME",
+                        help="scene to show, from whichever split holds it (default: the first scene of --split)")
     parser.add_argument("--frames", type=integer(1, 100_000), default=None, metavar="N",
                         help="only the scene's first N key frames (default: all)")
     parser.add_argument("--label-space", choices=LABEL_SPACE_NAMES, default=None,
@@ -928,15 +967,21 @@ def _run_view(args: argparse.Namespace) -> int:
         if args.save.suffix != ".rrd":
             raise UsageError(f"--save {args.save} must be a .rrd file")
     check_device(args.device)
-    from occkit.viz.serving import check_bind, is_loopback, start_server
+    from occkit.viz.serving import check_bind, check_port_free, is_loopback, start_server
 
     check_bind(args.bind)
+    if args.serve:  # a taken port is refused before rerun, torch and the scene load (start_server checks again)
+        if args.web_port == args.grpc_port:
+            raise UsageError(f"--web-port and --grpc-port are both {args.web_port}: the two servers need two ports")
+        check_port_free(args.bind, args.web_port, "--web-port")
+        check_port_free(args.bind, args.grpc_port, "--grpc-port")
     try:
         from occkit.viz.recording import ViewConfig, new_recording, open_scene, record_scene, start_sink
     except ModuleNotFoundError as error:
         if error.name != "rerun":
             raise
-        raise UsageError('occkit view needs the rerun viewer, an optional extra: pip install -e ".[viewer]"') from None
+        raise MissingDependencyError('occkit view needs the rerun viewer, an optional extra: pip install -e '
+                                     '".[viewer]"') from None
     config = ViewConfig(data=str(args.data), split=args.split, version=args.version, scene=args.scene,
                         frames=args.frames, pred=None if args.pred is None else str(args.pred),
                         ckpt=None if args.ckpt is None else str(args.ckpt), label_space=args.label_space,

@@ -44,6 +44,7 @@ __all__ = [
     "override_dict",
     "field_docs",
     "check_ranges",
+    "check_magnitudes",
 ]
 
 C = TypeVar("C")
@@ -84,10 +85,13 @@ def _convert(value: Any, tp: Any, key: str) -> Any:
     if origin in (typing.Union, types.UnionType):
         if value is None and type(None) in args:
             return None
-        for option in (a for a in args if a is not type(None)):
+        options = [a for a in args if a is not type(None)]
+        for option in options:
             try:
                 return _convert(value, option, key)
             except ConfigError:
+                if len(options) == 1:  # an optional value (X | None): X's own error names the inner key
+                    raise
                 continue
         raise ConfigError(f"{key}: {value!r} matches none of {_type_name(tp)}")
     if origin is typing.Literal:
@@ -208,6 +212,23 @@ def check_ranges(prefix: str, cfg: Any, ranges: Mapping[str, tuple[float, float]
             if not low <= item <= high:
                 where = f"{prefix}.{name}" if prefix else name
                 raise ConfigError(f"{where} must be between {_number(low)} and {_number(high)}, got {value!r}")
+
+
+def check_magnitudes(prefix: str, cfg: Any, limit: float) -> None:
+    """Refuse any number of ``cfg``, nested configs and tuples included, outside ``[-limit, limit]``.
+
+    The coarse bound of a config whose fields have no ranges of their own (a model section): a value far past any
+    that makes sense (``channels=10**12``) is refused before it is allocated. The message names ``prefix.a.b``.
+    """
+    for field in dataclasses.fields(cfg):
+        value = getattr(cfg, field.name)
+        where = f"{prefix}.{field.name}" if prefix else field.name
+        if dataclasses.is_dataclass(value):
+            check_magnitudes(where, value, limit)
+            continue
+        for item in value if isinstance(value, tuple) else (value,):
+            if isinstance(item, (int, float)) and not isinstance(item, bool) and not -limit <= item <= limit:
+                raise ConfigError(f"{where} must be between {_number(-limit)} and {_number(limit)}, got {value!r}")
 
 
 def _number(value: float) -> str:

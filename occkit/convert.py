@@ -44,7 +44,6 @@ rebuild plain data), never by unpickling code.
 
 from __future__ import annotations
 
-import json
 import re
 from collections import Counter
 from collections.abc import Callable, Mapping, Sequence
@@ -57,7 +56,8 @@ from torch import Tensor, nn
 
 from occkit import zoo
 from occkit.config import ConfigError
-from occkit.weight_files import load_torch_file, read_safetensors
+from occkit.outputs import check_report_file, write_atomic, write_report
+from occkit.weight_files import check_finite, load_torch_file, read_safetensors
 
 __all__ = [
     "WEIGHTS_FORMAT",
@@ -661,15 +661,25 @@ def read_checkpoint(path: str | Path) -> ReferenceCheckpoint:
     """The state dict of a checkpoint file, read without unpickling code.
 
     Reads ``.safetensors`` files, occkit checkpoints (their EMA weights when they have them), mmcv checkpoints
-    (``{'meta', 'state_dict', 'optimizer'}``, the EMA hook's ``epoch_N_ema.pth`` too) and bare state dicts.
+    (``{'meta', 'state_dict', 'optimizer'}``, the EMA hook's ``epoch_N_ema.pth`` too) and bare state dicts. Weights
+    that are NaN or infinite are refused (:func:`~occkit.weight_files.check_finite`): converted or loaded, they
+    would score an mIoU of 0 without any error.
 
     Raises:
         FileNotFoundError: no such file.
-        ValueError: the file cannot be read safely, or holds no state dict (the message names the file and why).
+        ValueError: the file cannot be read safely, holds no state dict, or weights that are not finite (the message
+            names the file and why).
     """
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"checkpoint {path} does not exist")
+    checkpoint = _read_state(path)
+    check_finite(checkpoint.state, path)
+    return checkpoint
+
+
+def _read_state(path: Path) -> ReferenceCheckpoint:
+    """:func:`read_checkpoint` without its checks of the values."""
     if path.suffix == ".safetensors":
         state, metadata = read_safetensors(path)
         return ReferenceCheckpoint(path, state, {}, metadata, occkit=metadata.get("format") == WEIGHTS_FORMAT,
@@ -701,6 +711,10 @@ def _check_architecture(checkpoint: ReferenceCheckpoint, architecture: str, targ
         raise ConfigError(f"{checkpoint.path} holds the weights of {held}, but {target} is a {architecture} model")
 
 
+#: The command named in the reports :func:`convert_checkpoint` writes (an earlier one of them may be replaced).
+_COMMAND = "occkit convert"
+
+
 def report_path(out_path: str | Path) -> Path:
     """Where :func:`convert_checkpoint` writes its report: ``FILE.report.json`` beside ``FILE.safetensors``."""
     out_path = Path(out_path)
@@ -725,6 +739,7 @@ def convert_checkpoint(path: str | Path, entry: str | None, out_path: str | Path
         ConfigError: wrong model, or in strict mode an incomplete conversion (the report is written first and the
             message names it; no weights are written).
     """
+    check_report(out_path)
     checkpoint = read_checkpoint(path)
     source = detect_source(list(checkpoint.state), str(checkpoint.path))
     entry = entry or checkpoint.metadata.get("entry") or default_entry(source)
@@ -738,27 +753,34 @@ def convert_checkpoint(path: str | Path, entry: str | None, out_path: str | Path
     conversion.source_file = checkpoint.path.name
     conversion.ignored = dict(checkpoint.ignored)
     out_path = Path(out_path)
-    out_path.parent.mkdir(parents=True, exist_ok=True)
     conversion.files = {"report": str(report_path(out_path))}
     if strict and not conversion.complete:
         _write_report(conversion)
         raise ConfigError(f"{checkpoint.path}: {_incomplete(conversion, checkpoint.state)} (full lists in "
                           f"{conversion.files['report']})")  # fmt: skip
-    from safetensors.torch import save_file
+    from safetensors.torch import save
 
     metadata = {"format": WEIGHTS_FORMAT, "entry": entry, "architecture": conversion.architecture,
                 "source": conversion.source, "source_file": checkpoint.path.name,
                 "complete": str(conversion.complete).lower()}  # fmt: skip
     # safetensors stores each tensor on its own: copies, so that views of one storage (possible in any state dict)
     # are written independently.
-    save_file({k: v.detach().contiguous().clone() for k, v in conversion.state.items()}, str(out_path), metadata)
+    state = {k: v.detach().contiguous().clone() for k, v in conversion.state.items()}
+    # Through a temporary file and a rename: a full disk or a folder that cannot be written leaves the previous file
+    # (or none), never a truncated one.
+    write_atomic(out_path, save(state, metadata))
     conversion.files["weights"] = str(out_path)
     _write_report(conversion)
     return conversion
 
 
+def check_report(out_path: str | Path) -> None:
+    """Refuse, before any work, a ``FILE.report.json`` beside ``out_path`` that is not an earlier convert report."""
+    check_report_file(report_path(out_path), _COMMAND, earlier_keys=("source_file", "counts", "mapped"))
+
+
 def _write_report(conversion: Conversion) -> None:
-    Path(conversion.files["report"]).write_text(json.dumps(conversion.report(), indent=2) + "\n")
+    write_report(Path(conversion.files["report"]), conversion.report(), _COMMAND)
 
 
 def format_report(report: Mapping[str, Any]) -> str:

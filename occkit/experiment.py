@@ -21,7 +21,7 @@ from typing import Any, Literal, TypeVar
 
 import yaml
 
-from occkit.config import ConfigError, check_ranges, dump_yaml, from_dict, override_dict, to_dict
+from occkit.config import ConfigError, check_magnitudes, check_ranges, dump_yaml, from_dict, override_dict, to_dict
 from occkit.data.dataset import DatasetConfig
 from occkit.data.transforms import ImageAugConfig
 from occkit.geometry.grid import VoxelGrid
@@ -45,6 +45,10 @@ _TRAIN_RANGES = {
     "ema_initial_updates": (0, 1_000_000_000), "seed": (0, 2**63 - 1), "workers": (0, 256), "val_every": (-1, _STEPS),
     "log_every": (1, _STEPS), "checkpoint_every": (0, _STEPS), "keep_last": (1, 10_000),
 }  # fmt: skip
+
+#: Bound of every number of a model section, whose fields have no ranges of their own: ten times past the largest
+#: of any zoo entry (DAOcc's LiDAR encoder keeps 160 000 voxels), far below a size whose allocation fails.
+_MODEL_LIMIT = 10_000_000
 
 
 @dataclass(frozen=True)
@@ -196,6 +200,10 @@ def experiment_from_dict(
         data=from_dict(DatasetConfig, data.get("data") or {}, f"{where}: data"),
         train=from_dict(TrainConfig, data.get("train") or {}, f"{where}: train"),
     )
+    try:
+        check_magnitudes("model", parsed.model, _MODEL_LIMIT)
+    except ConfigError as error:
+        raise ConfigError(f"{where}: {error}") from None
     if not overrides:
         check_label_space(parsed.model, parsed.data.label_space, where)
         return parsed

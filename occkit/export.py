@@ -20,7 +20,6 @@ for onnxruntime, the same network in PyTorch, and the model's full ``forward``.
 from __future__ import annotations
 
 import dataclasses
-import json
 import statistics
 import tempfile
 import time
@@ -37,7 +36,9 @@ from occkit import zoo
 from occkit.config import to_dict
 from occkit.engine.checkpoint import check_compatible
 from occkit.engine.evaluate import load_trained
+from occkit.errors import UsageError, require_module
 from occkit.models.deployment import DeployedNetwork, deploy
+from occkit.outputs import check_report_file, report_beside, write_report
 from occkit.types import Batch
 
 __all__ = [
@@ -47,6 +48,7 @@ __all__ = [
     "STANDARD_DOMAINS",
     "ExportError",
     "check_opset",
+    "check_export_output",
     "load_model",
     "load_sample",
     "export_onnx",
@@ -70,14 +72,8 @@ class ExportError(RuntimeError):
 
 
 def _require(module: str):
-    """Import an optional dependency of the export, or say how to get it."""
-    import importlib
-
-    try:
-        return importlib.import_module(module)
-    except ImportError as error:
-        raise ImportError(f"ONNX export needs {module}: pip install onnx onnxruntime onnxscript "
-                          "(or the package's dev extra)") from error
+    """Import an optional dependency of the export, or say how to get it (a MissingDependencyError: exit code 2)."""
+    return require_module(module, "ONNX export", "pip install onnx onnxruntime onnxscript (or the package's dev extra)")
 
 
 # ------------------------------------------------------------------------------------------------- what to export
@@ -235,6 +231,27 @@ def check_opset(opset: int) -> None:
     newest = _require("onnx").defs.onnx_opset_version()
     if opset > newest:
         raise ValueError(f"opset {opset} is not available: the installed onnx package knows opsets up to {newest}")
+
+
+#: The command named in the report; a report of it may be replaced by the next export to the same file.
+COMMAND = "occkit export"
+#: Keys every export report has held, also those written before reports named their command.
+_REPORT_KEYS = ("model", "opset", "op_types", "files")
+
+
+def check_export_output(out: Path) -> Path:
+    """The report file of an export to ``out`` (``FILE.json`` beside ``FILE.onnx``), once ``out`` is known to be a
+    ``.onnx`` name and the report's name to hold no file but an earlier export report (checked before any work).
+
+    Raises:
+        UsageError: ``out`` does not end in ``.onnx`` (``--out model.json`` would put the report over the model).
+        FileExistsError: ``FILE.json`` exists and is not a report of ``occkit export``.
+    """
+    if out.suffix != ".onnx":
+        raise UsageError(f"--out {out} must be a .onnx file: the report goes beside it, to FILE.json")
+    report = report_beside(out, ".json")
+    check_report_file(report, COMMAND, "--out", earlier_keys=_REPORT_KEYS)
+    return report
 
 
 def _file_opset(model) -> int:
@@ -434,7 +451,8 @@ def export_model(
     repeats: int = 3,
     sample: int | None = None,
 ) -> dict[str, Any]:
-    """``occkit export``: load, export, check parity and write ``<out>.json`` beside ``out``.
+    """``occkit export``: load, export, check parity and write the report ``FILE.json`` beside ``out``
+    (``FILE.onnx``; :func:`check_export_output`, before any work).
 
     Args:
         name: zoo entry; checkpoint: its trained weights (None: seeded random initialisation).
@@ -448,6 +466,7 @@ def export_model(
     out = Path(out)
     if repeats < 1:
         raise ValueError(f"repeats must be >= 1, got {repeats}")
+    json_path = check_export_output(out)
     check_opset(opset)
     model, experiment, difference = load_model(name, checkpoint)
     temporal = getattr(model, "temporal", None) is not None
@@ -466,7 +485,6 @@ def export_model(
         report["parity"] = check_parity(out, model, net, batch, frames if temporal else None)
         report["latency_ms"] = measure_latency(out, model, net, batch, repeats)
         report["onnxruntime"] = _require("onnxruntime").__version__
-    json_path = out.with_suffix(".json")
-    json_path.write_text(json.dumps(report, indent=2) + "\n")
+    write_report(json_path, report, COMMAND)
     report["json"] = str(json_path)
     return report

@@ -3,20 +3,27 @@
 Checkpoints of the reference toolkits (mmcv, mmdet3d) pickle a ``meta`` dict beside the weights, which may hold numpy
 scalars and arrays (an evaluation hook's scores); those reconstructors are allowed beside torch's weights-only set,
 since they rebuild plain numbers and arrays and nothing callable. Anything else a file would unpickle is refused with
-a message naming the file and the refused global. The pretrained backbones (:mod:`occkit.models.pretrained`) and the
-checkpoint converter (:mod:`occkit.convert`) read through here.
+a message naming the file and the refused global. Before any of it, the file's declared sizes are checked
+(:mod:`occkit.archives`), and after it every tensor must be a dense one with its data. The pretrained backbones
+(:mod:`occkit.models.pretrained`), the checkpoint converter (:mod:`occkit.convert`) and occkit's own checkpoints
+(:mod:`occkit.engine.checkpoint`) read through here; :func:`check_finite` refuses weights that are NaN or infinite.
 """
 
 from __future__ import annotations
 
 import re
+import warnings
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
 import torch
 from torch import Tensor
 
-__all__ = ["load_torch_file", "read_safetensors"]
+from occkit.archives import check_torch_file
+from occkit.arguments import format_bytes
+
+__all__ = ["load_torch_file", "check_finite", "read_safetensors"]
 
 
 def _numpy_globals() -> list:
@@ -33,24 +40,108 @@ def _numpy_globals() -> list:
     return allowed
 
 
-def load_torch_file(path: str | Path) -> Any:
-    """The object a torch file holds, loaded weights-only on the CPU (numpy metadata allowed).
+def load_torch_file(path: str | Path, map_location: str | torch.device = "cpu") -> Any:
+    """The object a torch file holds, loaded weights-only (numpy metadata allowed) onto ``map_location``.
+
+    Before ``torch.load`` the file's declared sizes are checked (:func:`occkit.archives.check_torch_file`), so a
+    crafted archive is refused before it inflates; after it, every tensor must be dense, with its data (not a meta
+    tensor, not a view larger than the data it was saved with, which would allocate its full size on first use).
 
     Raises:
-        ValueError: the file cannot be read safely or at all (the message names the file and why).
+        ValueError: the file cannot be read safely or at all (the message names the file and why; a refused
+            pickle names the global it would have run).
     """
+    path = Path(path)
+    check_torch_file(path)
     try:
-        with torch.serialization.safe_globals(_numpy_globals()):
-            return torch.load(path, map_location="cpu", weights_only=True)
+        with torch.serialization.safe_globals(_numpy_globals()), warnings.catch_warnings():
+            # A sparse tensor is refused below in one line; torch's note that it validates one would be a second.
+            warnings.filterwarnings("ignore", message="Validating sparse tensor invariants")
+            payload = torch.load(path, map_location=map_location, weights_only=True)
+    except MemoryError:
+        raise
     except Exception as error:  # torch raises UnpicklingError, RuntimeError, EOFError, ... for unreadable files
-        text = " ".join(str(error).split())
-        refused = re.search(r"Unsupported global: GLOBAL ([\w.]+)", text)
+        raise ValueError(_refusal(path, error)) from error
+    _check_tensors(payload, path)
+    return payload
+
+
+#: How torch words a refused global: a module it blocks (``posix.system``), a global outside the allowed set, a
+#: class or function the unpickler met another way.
+_REFUSED = (re.compile(r"GLOBAL ([\w.]+)"), re.compile(r"unrecognized function (.+?)(?: which belongs|$)"),
+            re.compile(r"allowlisted via `add_safe_globals` but got (.+?)$"))  # fmt: skip
+
+
+def _refusal(path: Path, error: Exception) -> str:
+    """One line saying why ``torch.load`` refused ``path``: the global a pickle would run, or torch's own reason
+    without its advice (which would have the user unpickle code with ``weights_only=False``)."""
+    text = " ".join(str(error).split())
+    # torch wraps its reason in advice: from "Weights only load failed" up to the reason (after "WeightsUnpickler
+    # error:" where it says so), and a pointer to its documentation after it.
+    reason = text.split("WeightsUnpickler error:")[-1]
+    reason = re.sub(r"Weights only load failed\..*?(?=Unsupported|Trying|Can only|$)", "", reason)
+    reason = re.sub(r"Check the documentation of torch\.load.*", "", reason).strip()
+    for pattern in _REFUSED:
+        refused = pattern.search(reason)
         if refused:
-            why = (f"it pickles {refused[1]}, which safe (weights-only) loading refuses to run; occkit does not "
-                   "unpickle code. If you trust the file, re-save its state dict as plain tensors and use that")
-        else:
-            why = f"{type(error).__name__}: {text[:300]}"
-        raise ValueError(f"{path} cannot be read as a checkpoint: {why}") from error
+            return (f"{path} cannot be read as a checkpoint: it pickles {refused[1]}, which safe (weights-only) "
+                    "loading refuses to run; occkit does not unpickle code. If you trust the file, re-save its state "
+                    "dict as plain tensors and use that")  # fmt: skip
+    if "storage has wrong byte size" in reason:  # torch's message leaves its printf placeholders unfilled
+        reason = "a tensor's data is not the size its pickle declares (storage has wrong byte size)"
+    return f"{path} is not a readable checkpoint: {type(error).__name__}: {reason[:200] or 'no reason given'}"
+
+
+def _check_tensors(payload: Any, path: Path) -> None:
+    """Refuse a payload holding a tensor occkit cannot use as saved weights (see :func:`load_torch_file`).
+
+    The walk is iterative and visits every object once: a pickle may nest containers deeply or share them."""
+    seen: set[int] = set()
+    pending: list[tuple[Any, str]] = [(payload, "")]
+    while pending:
+        value, where = pending.pop()
+        if id(value) in seen:
+            continue
+        seen.add(id(value))
+        if isinstance(value, Tensor):
+            problem = _tensor_problem(value)
+            if problem:
+                raise ValueError(f"{path}: {where or 'the file'} is {problem}; not saved weights occkit reads")
+        elif isinstance(value, (Mapping, list, tuple)):
+            items = value.items() if isinstance(value, Mapping) else enumerate(value)
+            # Names for messages, to a few levels (the keys of a state dict); deeper ones keep their parent's.
+            pending.extend((item, f"{where}.{key}".lstrip(".") if where.count(".") < 4 else where)
+                           for key, item in items)  # fmt: skip
+
+
+def _tensor_problem(tensor: Tensor) -> str | None:
+    if tensor.layout != torch.strided:
+        return f"a {str(tensor.layout).removeprefix('torch.')} tensor, not a dense one"
+    if tensor.is_meta:
+        return "a meta tensor, without data"
+    needed, stored = tensor.numel() * tensor.element_size(), tensor.untyped_storage().nbytes()
+    if needed > stored:
+        return (f"a {tuple(tensor.shape)} view of {format_bytes(needed)} over {format_bytes(stored)} of saved data "
+                "(an expanded tensor)")  # fmt: skip
+    return None
+
+
+def check_finite(state: Mapping[str, Tensor], path: str | Path, what: str = "weights") -> None:
+    """Refuse weights holding NaN or infinite values: such a model predicts nothing and scores an mIoU of 0 without
+    any error, so a diverged run or a broken export is named here, with its first keys and how many values.
+
+    Raises:
+        ValueError: naming ``path``, the count of tensors that are not finite and the first keys.
+    """
+    bad = [key for key, tensor in state.items()
+           if tensor.is_floating_point() or tensor.is_complex()
+           if not bool(torch.isfinite(tensor).all())]  # fmt: skip
+    if bad:
+        shown = ", ".join(f"{key} ({int((~torch.isfinite(state[key])).sum())} of {state[key].numel()} values)"
+                          for key in bad[:3])  # fmt: skip
+        raise ValueError(f"{path}: {len(bad)} of {len(state)} tensors of its {what} hold NaN or infinite values: "
+                         f"{shown}{', ...' if len(bad) > 3 else ''}; a model with them predicts nothing (was the run "
+                         "diverging when they were saved?)")  # fmt: skip
 
 
 def read_safetensors(path: str | Path) -> tuple[dict[str, Tensor], dict[str, str]]:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import time
+from pathlib import Path
 
 import pytest
 
@@ -11,6 +12,8 @@ from occkit.config import ConfigError, apply_overrides, check_ranges
 from occkit.data.dataset import DatasetConfig
 from occkit.experiment import TrainConfig
 from occkit.sim.config import SimConfig, WorldConfig
+
+REPO = Path(__file__).resolve().parents[1]
 
 
 @pytest.mark.parametrize(
@@ -82,6 +85,8 @@ def test_negative_max_steps_is_refused_before_training(tmp_path, capsys):
         ["predict", "--ckpt", "c.pt", "--data", ".", "--out", "p", "--batch-size", "100000"],
         ["bench", "--model", "flashocc_tiny", "--out", "b.json", "--iters", "10000000"],
         ["demo", "--steps", "1000000000"],
+        ["export", "--model", "flashocc_tiny", "--out", "m.onnx", "--sample", "100000000"],
+        ["export", "--model", "flashocc_tiny", "--out", "m.onnx", "--opset", "100000"],
     ],
 )
 def test_numeric_options_have_an_upper_bound(argv, tmp_path, capsys, monkeypatch):
@@ -91,3 +96,20 @@ def test_numeric_options_have_an_upper_bound(argv, tmp_path, capsys, monkeypatch
     assert exited.value.code == 2
     assert "must be between" in capsys.readouterr().err
     assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize(
+    ("override", "needle"),
+    [
+        ("model.bev.channels=[16, 1000000000000, 64]", "model.bev.channels must be between -10000000 and 10000000"),
+        ("model.occupancy.hidden_channels=100000000", "model.occupancy.hidden_channels must be between"),
+        # An optional section (X | None) reports its inner key, not "matches none of" with the whole section.
+        ("model.range_extension.in_channels=many", "model.range_extension.in_channels: expected int, got 'many'"),
+    ],
+)
+def test_model_sections_are_bounded_and_errors_name_the_inner_key(override, needle):
+    from occkit.zoo import load_experiment
+
+    with pytest.raises(ConfigError) as raised:
+        load_experiment(REPO / "configs" / "daocc_tiny.yaml", [override])
+    assert needle in str(raised.value)

@@ -7,6 +7,7 @@ runs every command end to end with all of them.
 from __future__ import annotations
 
 import argparse
+import sys
 
 import pytest
 
@@ -34,8 +35,8 @@ def _exit_code(argv: list[str]) -> int:
 @pytest.mark.parametrize(
     ("argv", "needle"),
     [
-        (["demo", "--steps", "0"], "argument --steps: must be >= 1, got 0"),
-        (["demo", "--steps", "-5"], "argument --steps: must be >= 1, got -5"),
+        (["demo", "--steps", "0"], "argument --steps: must be between 1 and 100000000, got 0"),
+        (["demo", "--steps", "-5"], "argument --steps: must be between 1 and 100000000, got -5"),
         (["sim", "--out", "x", "--scenes", "many"], "argument --scenes: expected an integer, got 'many'"),
         (["bench", "--model", "flashocc_tiny", "--miou", "250", "--out", "b.json"], "between 0 and 100, got 250"),
         (["bench", "--model", "flashocc_tiny", "--miou", "nan", "--out", "b.json"], "a finite number"),
@@ -168,3 +169,24 @@ def test_output_checks(tmp_path):
         output_folder(tmp_path / "f", "--out")
     with pytest.raises(UsageError, match="cannot be created"):
         output_file(tmp_path / "f" / "a.json", "--out")
+
+
+def test_a_missing_optional_extra_is_the_users_to_install_exit_2(tmp_path, capsys, monkeypatch):
+    from occkit.data.corruptions import _image_transform
+    from occkit.errors import MissingDependencyError
+    from occkit.export import _require
+
+    for module in ("open3d", "albumentations", "onnxruntime"):
+        monkeypatch.setitem(sys.modules, module, None)  # an import of it fails, installed or not
+    (tmp_path / "data").mkdir()
+    argv = ["label", "--root", str(tmp_path / "data"), "--version", "v1.0-synth", "--out", str(tmp_path / "labels"),
+            "--densify", "poisson"]  # fmt: skip
+    assert main(argv) == 2
+    line = _error_line(capsys, "label")
+    assert "densify=poisson needs open3d" in line and 'pip install -e ".[labels]"' in line
+    assert not (tmp_path / "labels").exists()
+    with pytest.raises(MissingDependencyError, match=r"an image corruption needs albumentations .*\[robustness\]"):
+        _image_transform("brightness", {"brightness": 0.1}, seed=0)
+    with pytest.raises(MissingDependencyError, match="ONNX export needs onnxruntime"):
+        _require("onnxruntime")
+    assert is_input_error(MissingDependencyError("x")) and issubclass(MissingDependencyError, ImportError)

@@ -563,6 +563,7 @@ def test_convert_checkpoint_writes_weights_and_report(tmp_path):
     out = tmp_path / "weights" / "flashocc_tiny.safetensors"
     conversion = convert_checkpoint(path, "flashocc_tiny", out)
     report = json.loads(report_path(out).read_text())
+    assert report.pop("written_by") == "occkit convert"  # so that a later conversion may replace it, and only it
     assert report == json.loads(json.dumps(conversion.report()))
     assert report["complete"] and report["counts"]["mapped"] == len(flashocc_state(tiny=True))
     assert report["ignored_entries"] == {"meta": "mmcv run metadata: config text, versions, epoch"}
@@ -629,3 +630,16 @@ def test_cli_eval_scores_converted_weights_with_the_entrys_experiment(tmp_path, 
     ]:
         assert main(["eval", *argv, *common, "--out", str(tmp_path / "refused")]) == 2
         assert needle in capsys.readouterr().err
+
+
+def test_convert_never_writes_its_report_over_a_users_file(tmp_path):
+    path = tmp_path / "flashocc_tiny.pth"
+    torch.save({"state_dict": flashocc_state(tiny=True)}, path)
+    out = tmp_path / "flashocc_tiny.safetensors"
+    report_path(out).write_text('{"my": "notes"}\n')
+    with pytest.raises(FileExistsError, match="flashocc_tiny.report.json, which exists and is not a report of occkit"):
+        convert_checkpoint(path, "flashocc_tiny", out)
+    assert report_path(out).read_text() == '{"my": "notes"}\n' and not out.exists()
+    report_path(out).unlink()
+    convert_checkpoint(path, "flashocc_tiny", out)
+    convert_checkpoint(path, "flashocc_tiny", out)  # an earlier report of its own is replaced

@@ -420,7 +420,8 @@ def test_a_json_index_of_an_older_occkit_says_how_to_rebuild_it(tmp_path):
     message = (
         rf"^{re.escape(str(path))}: a JSON index of an older occkit \(occkit-index/1\); this occkit reads "
         r"occkit-index/3 \(\.npz\): rebuild it with `occkit index --root data/synth --version v1\.0-synth "
-        rf"--max-sweeps 3 --split val --out '{re.escape(str(path))}'`$"
+        rf"--max-sweeps 3 --split val --out '{re.escape(str(path.with_suffix('.npz')))}'` and point data\.index at "
+        rf"{re.escape(str(path.with_suffix('.npz')))}$"
     )
     for read in (load_index, read_index_header):
         with pytest.raises(OutdatedIndexError, match=message):

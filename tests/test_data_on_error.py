@@ -165,3 +165,60 @@ def test_eval_writes_no_prediction_outside_its_folder(data, run, tmp_path):
         evaluate_model(model, dataset, batch_size=1, predictions=predictions)
     assert not list(tmp_path.rglob("escape_tok*"))
 
+
+
+# ------------------------------------------------------------------------------ errors in DataLoader workers
+class _BrokenSamples(torch.utils.data.Dataset):
+    """Sample 1 fails as a broken file would: a ValueError naming the sample, or an error torch cannot rebuild."""
+
+    def __init__(self, error: str = "value") -> None:
+        self.error = error
+
+    def __len__(self) -> int:
+        return 3
+
+    def __getitem__(self, index: int) -> int:
+        if index == 1 and self.error == "value":
+            raise ValueError("sample tok-1: CAM_FRONT image samples/CAM_FRONT/tok-1.jpg is truncated")
+        if index == 1:
+            b"\xff".decode()  # UnicodeDecodeError takes five arguments: torch cannot rebuild it from a message
+        return index
+
+
+def _raised(loader) -> BaseException:
+    with pytest.raises(Exception) as raised:
+        list(loader)
+    return raised.value
+
+
+@pytest.mark.parametrize("error", ["value", "decode"])
+def test_a_worker_error_is_raised_as_with_no_workers(error):
+    from occkit.data.loader import WorkerTraceback, sample_loader
+    from occkit.errors import is_input_error, one_line
+
+    dataset = _BrokenSamples(error)
+    inline = _raised(sample_loader(dataset, batch_size=1, num_workers=0, collate_fn=list))
+    in_worker = _raised(sample_loader(dataset, batch_size=1, num_workers=1, collate_fn=list))
+    assert type(in_worker) is type(inline) and str(in_worker) == str(inline) and is_input_error(in_worker)
+    assert "DataLoader worker" not in one_line(in_worker) and len(one_line(in_worker)) < 100
+    # --debug shows where the worker failed: its traceback is the cause of the error raised again.
+    assert isinstance(in_worker.__cause__, WorkerTraceback) and "__getitem__" in str(in_worker.__cause__)
+
+
+def test_a_plain_dataloader_worker_error_still_prints_as_one_line():
+    from occkit.errors import one_line
+
+    raised = _raised(torch.utils.data.DataLoader(_BrokenSamples(), batch_size=1, num_workers=1))
+    assert "Caught ValueError in DataLoader worker process 0" in str(raised)  # torch's message, kilobytes long
+    assert one_line(raised) == "sample tok-1: CAM_FRONT image samples/CAM_FRONT/tok-1.jpg is truncated"
+
+
+def test_cli_train_with_a_loader_worker_reports_a_broken_sample_in_one_line(data, tmp_path, capsys):
+    settings = [s for s in SMALL if not s.startswith(("data.on_error", "train.workers"))]
+    settings += ["data.on_error=raise", "train.workers=1", f"data.root={data}"]
+    argv = ["train", "--config", str(REPO / "configs" / "flashocc_tiny.yaml"), "--out", str(tmp_path / "run"),
+            "--device", "cpu", "--no-progress", *(f"--set={s}" for s in settings)]  # fmt: skip
+    assert main(argv) == 2
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("occkit train: error: "), lines
+    assert "image not found" in lines[0] and "DataLoader worker" not in lines[0] and "Traceback" not in lines[0]

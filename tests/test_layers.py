@@ -19,7 +19,8 @@ PACKAGE = Path(__file__).resolve().parents[1] / "occkit"
 LAYERS: tuple[tuple[str, ...], ...] = (
     # plain values, shapes and the geometry every other layer computes with
     ("occkit.errors", "occkit.config", "occkit.classes", "occkit.types", "occkit.geometry", "occkit.label_space",
-     "occkit.label_files", "occkit.arguments", "occkit.nuscenes", "occkit.figure", "occkit.weight_files"),
+     "occkit.label_files", "occkit.arguments", "occkit.nuscenes", "occkit.figure", "occkit.weight_files",
+     "occkit.archives", "occkit.outputs"),
     # reading and writing datasets; the synthetic world writes what data reads, importing nothing of it; labels
     # built from a dataset's sensor data
     ("occkit.data", "occkit.sim", "occkit.labeling"),

@@ -3,8 +3,11 @@
 from __future__ import annotations
 
 import dataclasses
+import io
 import json
 import math
+import os
+import shutil
 
 import numpy as np
 import pytest
@@ -18,6 +21,7 @@ from occkit.data.transforms import ImageAugConfig
 from occkit.engine.checkpoint import FORMAT, atomic_save
 from occkit.engine.evaluate import evaluate_model
 from occkit.geometry.camera import project_points
+from occkit.label_space import OCC3D_SPACE
 from occkit.robustness import SUITES, Case, parse_suite, run_robustness
 from occkit.robustness.report import corruption_error, resilience, score_summary
 from occkit.robustness.suite import model_inputs, not_applicable
@@ -279,10 +283,10 @@ def test_resilience_and_corruption_error_follow_robobev():
 
 
 # ---------------------------------------------------------------------------------------------- occkit robustness
-def _checkpoint(world, path, entry="daocc_tiny", seed=0):
+def _checkpoint(world, path, entry="daocc_tiny", seed=0, image_aug=IMAGE_AUG):
     experiment = zoo.experiment(entry)
     experiment = dataclasses.replace(experiment, data=dataclasses.replace(
-        experiment.data, root=str(world), split="all", cameras=CAMERAS, image_aug=IMAGE_AUG))
+        experiment.data, root=str(world), split="all", cameras=CAMERAS, image_aug=image_aug))
     experiment = dataclasses.replace(experiment, train=dataclasses.replace(experiment.train, val_split="all"))
     torch.manual_seed(seed)
     model = zoo.build_from_config(experiment.architecture, experiment.model)
@@ -343,3 +347,158 @@ def test_robustness_writes_its_report_and_resumes_from_the_finished_cases(world,
     assert "'rain' is neither a suite" in capsys.readouterr().err
     assert main(["robustness", "--list"]) == 0
     assert "lidar_beams (lidar; needs lidar)" in capsys.readouterr().out
+
+
+# ------------------------------------------------------------------------------------------------------ the cache
+def _rewrite_keeping_size_and_time(path, change):
+    """Change a file's bytes in place (``change(bytes) -> bytes`` of the same length), then give it back its
+    modification time: what ``cp -p`` or ``rsync -a`` of another version of the file leaves."""
+    stat = path.stat()
+    data = path.read_bytes()
+    changed = change(data)
+    assert len(changed) == len(data) and changed != data
+    path.write_bytes(changed)
+    os.utime(path, ns=(stat.st_atime_ns, stat.st_mtime_ns))
+    assert path.stat().st_size == stat.st_size and path.stat().st_mtime_ns == stat.st_mtime_ns
+
+
+def _uncompressed_labels(labels_file, free=False):
+    """The bytes of ``labels_file`` (an Occ3D labels.npz) stored uncompressed: their size is the grid's whatever
+    the classes; with ``free``, every voxel is free space."""
+    with np.load(labels_file) as arrays:
+        content = {name: arrays[name] for name in arrays.files}
+    if free:
+        content["semantics"] = np.full_like(content["semantics"], OCC3D_SPACE.free_index)
+    buffer = io.BytesIO()
+    np.savez(buffer, **content)
+    return buffer.getvalue()
+
+
+def test_the_cache_misses_when_any_input_of_a_case_changes(world, tmp_path, monkeypatch):
+    """Each input a case's scores depend on is changed in turn, the others kept: every change is a miss, and the
+    unchanged inputs are a hit (so a miss is not a broken key)."""
+    from occkit.robustness import cache
+
+    labels = tmp_path / "gts"
+    shutil.copytree(world / "gts", labels)
+    labels_file = sorted(labels.rglob("labels.npz"))[1]
+    labels_file.write_bytes(_uncompressed_labels(labels_file))
+    checkpoint = _checkpoint(world, tmp_path / "model.pt")
+
+    def dataset(**changes):
+        return _dataset(world, **{"label_root": str(labels), **changes})
+
+    beams = Case("lidar_beams", 2)
+
+    def key(case=beams, data=None, seed=0, rayiou=False):
+        return cache.case_fingerprint(cache.cache_context(checkpoint, data or dataset(), seed, rayiou), case)
+
+    path = tmp_path / "case.json"
+    cache.write_case(path, key(), {"miou": 0.16, "iou": 0.5, "seconds": 3.0})
+    assert cache.read_cached(path, key()) == {"miou": 0.16, "iou": 0.5, "seconds": 3.0}
+
+    changes = {
+        "the severity": lambda: key(case=Case("lidar_beams", 3)),
+        "the case": lambda: key(case=Case("point_dropout", 2)),
+        "the seed": lambda: key(seed=1),
+        "the metrics (RayIoU)": lambda: key(rayiou=True),
+        "the data settings": lambda: key(data=dataset(sweeps=4)),
+        "the image transform": lambda: key(data=dataset(image_aug=ImageAugConfig(final_size=(128, 352)))),
+        "the split": lambda: key(data=dataset(split="train")),  # the world's one scene: the same frames as "all"
+    }
+    for what, changed_key in changes.items():
+        assert cache.read_cached(path, changed_key()) is None, what
+
+    # The occkit version, the checkpoint's bytes (same path) and the labels' content (same size and time).
+    monkeypatch.setattr(cache, "__version__", "0.0.0+other")
+    assert cache.read_cached(path, key()) is None, "the occkit version"
+    monkeypatch.undo()
+    assert cache.read_cached(path, key()) is not None
+    _checkpoint(world, checkpoint, seed=1)
+    assert cache.read_cached(path, key()) is None, "the checkpoint"
+    cache.write_case(path, key(), {"miou": 0.16, "iou": 0.5, "seconds": 3.0})
+    _rewrite_keeping_size_and_time(labels_file, lambda _: _uncompressed_labels(labels_file, free=True))
+    assert cache.read_cached(path, key()) is None, "the ground truth"
+
+
+def test_a_changed_ground_truth_is_scored_again_not_taken_from_the_cache(world, tmp_path):
+    """The probe's case: gts/ replaced after a run; the rerun printed the old mIoU as cached."""
+    data = tmp_path / "data"
+    shutil.copytree(world, data)
+    for labels_file in data.glob("gts/*/*/labels.npz"):
+        labels_file.write_bytes(_uncompressed_labels(labels_file))
+    checkpoint = _checkpoint(world, tmp_path / "model.pt")
+    out = tmp_path / "robustness"
+    first = run_robustness(checkpoint, out, data=data, suite="no_lidar", rayiou=False, workers=0, log=print)
+    assert first["clean"]["miou"] > 0
+    for labels_file in data.glob("gts/*/*/labels.npz"):  # every frame is free space now
+        _rewrite_keeping_size_and_time(labels_file, lambda _, f=labels_file: _uncompressed_labels(f, free=True))
+    lines: list[str] = []
+    second = run_robustness(checkpoint, out, data=data, suite="no_lidar", rayiou=False, workers=0, log=lines.append)
+    assert not any("cached" in line for line in lines), lines
+    assert not second["clean"]["cached"] and second["clean"]["miou"] != first["clean"]["miou"]
+
+
+def test_a_cached_case_file_of_another_shape_is_computed_again(tmp_path):
+    from occkit.robustness import cache
+
+    path = tmp_path / "clean.json"
+    for text in ("[]", '{"fingerprint": {}, "result": []}', '{"fingerprint": {}}', "not json"):
+        path.write_text(text)
+        assert cache.read_cached(path, {}) is None, text
+
+
+def test_a_folder_where_a_case_file_goes_is_one_error_line_before_any_work(world, tmp_path, capsys, monkeypatch):
+    from occkit.cli import main
+    from occkit.robustness import run
+
+    monkeypatch.setattr(run, "load_trained", lambda *_: pytest.fail("the paths are checked before the model loads"))
+    checkpoint = _checkpoint(world, tmp_path / "model.pt")
+    out = tmp_path / "robustness"
+    command = ["robustness", "--ckpt", str(checkpoint), "--out", str(out), "--suite", "fog:2", "--no-rayiou",
+               "--workers", "0", "--device", "cpu"]  # fmt: skip
+    blockers = {out / "cases" / "fog-2.json": "is a folder, where occkit robustness writes the scores of case fog",
+                out / "robustness.md": "is not a file, where occkit robustness writes its robustness.md"}
+    for blocker, message in blockers.items():
+        blocker.mkdir(parents=True)
+        assert main(command) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and f"occkit robustness: error: {blocker} {message}" in err, err
+        assert "choose another --out" in err
+        blocker.rmdir()
+    (out / "cases").rmdir()
+    (out / "cases").write_text("")
+    assert main(command) == 2
+    assert f"{out / 'cases'} is a file where occkit robustness keeps its per-case cache" in capsys.readouterr().err
+
+
+# -------------------------------------------------------------------------------------------------- applicability
+@pytest.mark.parametrize(("entry", "inputs"), [
+    ("flashocc_tiny", {"cameras"}),
+    ("da_occ_tiny", {"cameras"}),  # LiDAR is loaded in training as the depth target only
+    ("da_occ_tiny_temporal", {"cameras", "temporal"}),
+    ("daocc_tiny", {"cameras", "lidar"}),
+])  # fmt: skip
+def test_what_a_model_takes_is_what_its_forward_reads_not_what_its_data_loads(entry, inputs):
+    from occkit.robustness.run import inference_inputs
+
+    experiment = zoo.experiment(entry)
+    model = zoo.build_from_config(experiment.architecture, experiment.model)
+    assert inference_inputs(model, experiment.model) == inputs
+
+
+def test_lidar_cases_are_not_applicable_to_camera_only_da_occ_and_stay_out_of_mrr(world, tmp_path):
+    checkpoint = _checkpoint(world, tmp_path / "da_occ.pt", entry="da_occ_tiny",
+                             image_aug=ImageAugConfig(final_size=(128, 352)))
+    assert zoo.experiment("da_occ_tiny").data.sweeps >= 0  # its data loads LiDAR (the depth target)
+    report = run_robustness(checkpoint, tmp_path / "out", suite="lidar_beams:2,no_lidar,no_cameras,missing_camera:2",
+                            rayiou=False, workers=0, log=lambda _: None)  # fmt: skip
+    assert report["inputs"] == ["cameras"]
+    assert [c["name"] for c in report["corruptions"]] == ["missing_camera"]
+    assert {item["name"]: item["reason"] for item in report["not_applicable"]} == {
+        "lidar_beams": "needs a model that takes lidar",
+        "no_lidar": "needs a model that takes cameras and lidar",
+        "no_cameras": "needs a model that takes cameras and lidar",
+    }
+    assert report["mrr"]["miou"] == pytest.approx(report["corruptions"][0]["rr"]["miou"])
+    assert "Not applicable to this model: `lidar_beams`" in (tmp_path / "out" / "robustness.md").read_text()

@@ -153,8 +153,8 @@ def test_a_batch_logs_without_image_files_as_the_network_sees_it(data, tmp_path)
     assert camera["Pinhole:resolution"][0].as_py() == [[batch.images.shape[-1], batch.images.shape[-2]]]
 
 
-@needs_rerun
-def test_a_checkpoint_predicts_the_frames_in_order(data, tmp_path):
+def _small_checkpoint(folder: Path) -> Path:
+    """A freshly initialised FlashOcc, small enough to predict a frame in a second."""
     import torch
 
     from occkit import zoo
@@ -167,10 +167,14 @@ def test_a_checkpoint_predicts_the_frames_in_order(data, tmp_path):
     experiment = experiment_from_dict(zoo.experiment("flashocc_tiny").to_dict(), "test", overrides)
     torch.manual_seed(0)
     model = zoo.build_from_config(experiment.architecture, experiment.model)
-    (tmp_path / "run").mkdir()
-    checkpoint = atomic_save({"format": FORMAT, "architecture": experiment.architecture,
-                              "experiment": experiment.to_dict(), "model": model.state_dict(), "ema": None},
-                             tmp_path / "run" / "model.pt")  # fmt: skip
+    folder.mkdir()
+    return atomic_save({"format": FORMAT, "architecture": experiment.architecture, "experiment": experiment.to_dict(),
+                        "model": model.state_dict(), "ema": None}, folder / "model.pt")  # fmt: skip
+
+
+@needs_rerun
+def test_a_checkpoint_predicts_the_frames_in_order(data, tmp_path):
+    checkpoint = _small_checkpoint(tmp_path / "run")
     path = tmp_path / "ckpt.rrd"
     assert main(["view", "--data", str(data), "--split", "train", "--ckpt", str(checkpoint), "--frames", "1", "--save",
                  str(path)]) == 0  # fmt: skip
@@ -185,8 +189,21 @@ def test_an_unknown_scene_is_one_line_naming_the_scenes(data, tmp_path, capsys):
     assert main(argv) == 2
     error = capsys.readouterr().err
     assert error.startswith("occkit view: error:") and error.count("\n") == 1
-    assert "no scene 'scene-0002'" in error and "its scenes: scene-0001" in error
+    assert "no scene 'scene-0002' in v1.0-synth (in no split)" in error and "its scenes: scene-0001" in error
     assert not (tmp_path / "x.rrd").exists()
+
+
+@needs_rerun
+def test_a_named_scene_is_found_in_any_split(data, tmp_path, capsys):
+    """The world's one scene is in train; --split is left at val (which has no scene here): the name finds it, with
+    the dataset and the checkpoint's predictions of that scene."""
+    path = tmp_path / "scene.rrd"
+    assert main(["view", "--data", str(data), "--scene", "scene-0001", "--frames", "1", "--save", str(path)]) == 0
+    assert f"wrote 1 frames of scene-0001 to {path}" in capsys.readouterr().out
+    checkpoint = _small_checkpoint(tmp_path / "run")
+    assert main(["view", "--data", str(data), "--scene", "scene-0001", "--ckpt", str(checkpoint), "--frames", "1",
+                 "--save", str(path)]) == 0  # fmt: skip
+    assert set(_read(path)[f"{EGO}/occupancy/prediction"]["Boxes3D:centers"]) == {0}
 
 
 @pytest.mark.parametrize(("arguments", "message"), [(["--save", "{tmp}/x.txt"], "must be a .rrd file"),
@@ -214,3 +231,21 @@ def test_importing_occkit_imports_no_rerun():
     code = "import sys, occkit, occkit.cli, occkit.viz; print('rerun' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "False"
+
+
+def test_serve_refuses_a_taken_port_before_rerun_torch_or_the_scene_load(data):
+    """In a fresh interpreter: the one error line, and neither rerun nor torch imported by then."""
+    import socket
+
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        code = ("import sys; from occkit.cli import main; "
+                f"code = main(['view', '--data', {str(data)!r}, '--serve', '--grpc-port', '{port}']); "
+                "print(code, 'rerun' in sys.modules, 'torch' in sys.modules)")  # fmt: skip
+        run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert run.stdout.split() == ["2", "False", "False"]
+    assert run.stderr == (f"occkit view: error: --grpc-port {port} is already in use on 127.0.0.1: choose another port "
+                          "with --grpc-port\n")  # fmt: skip
+    assert main(["view", "--data", str(data), "--serve", "--web-port", "9100", "--grpc-port", "9100"]) == 2

@@ -343,7 +343,7 @@ def test_cli_predicts_with_a_checkpoint(data, tmp_path):
         (["--token", "nosuchtoken"], "no sample token 'nosuchtoken'"),
         (["--pred", "{empty}"], ".npz not found"),
         (["--pred", "{missing}"], "--pred "),
-        (["--frames", "0"], "argument --frames: must be >= 1, got 0"),
+        (["--frames", "0"], "argument --frames: must be between 1 and 10000, got 0"),
     ],
 )
 def test_cli_bad_input_is_one_error_line(data, tmp_path, capsys, arguments, message):

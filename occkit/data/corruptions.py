@@ -31,6 +31,7 @@ from scipy.spatial.transform import Rotation
 from torch import Tensor
 
 from occkit.data.transforms import drop_lidar_beams, drop_points
+from occkit.errors import require_module
 from occkit.nuscenes import CAMERAS
 
 __all__ = ["CORRUPTIONS", "Corruption", "SampleCorruption", "corruption_names"]
@@ -129,10 +130,7 @@ def _hash(text: str) -> int:
 def _image_transform(name: str, params: dict[str, Any], seed: int):
     """The albumentations pipeline of an image corruption level, seeded."""
     os.environ.setdefault("NO_ALBUMENTATIONS_UPDATE", "1")  # albumentations otherwise asks PyPI for a new version
-    try:
-        import albumentations as A
-    except ImportError:
-        raise ImportError("image corruptions need albumentations: pip install 'occkit[robustness]'") from None
+    A = require_module("albumentations", "an image corruption", "pip install 'occkit[robustness]'")  # noqa: N806
     if name == "brightness":
         transforms = [A.RandomBrightnessContrast((params["brightness"],) * 2, (0.0, 0.0), p=1.0)]
     elif name == "low_light":

@@ -940,12 +940,7 @@ class _IndexBuilder:
     def labelled_samples(self, scene: str) -> set[str]:
         """Sample tokens of ``scene`` with an Occ3D ``labels.npz``: one directory listing per scene, one stat per
         sample directory found (the index reads no other file). ``scene`` is a checked name (see :meth:`scenes`)."""
-        folder = self.tables.root / "gts" / scene
-        try:
-            entries = list(os.scandir(folder))
-        except (FileNotFoundError, NotADirectoryError):
-            return set()
-        return {entry.name for entry in entries if os.path.isfile(os.path.join(entry.path, "labels.npz"))}
+        return _labelled_tokens(Path(self.tables.root) / "gts" / scene)
 
     # ------------------------------------------------------------------------------------------- one frame
     def frame(self, scene: dict, sample: dict, index: int, labelled: bool) -> FrameRecord:
@@ -1449,9 +1444,11 @@ def _rebuild_hint(path: Path, header: Mapping[str, Any], number: int) -> str:
     if "from_info" in header:
         command += ["--from-info", str(header["from_info"]), "--trust-pickle"]
     what = "a JSON index" if number == 1 else "an index"
+    rebuilt = path.with_suffix(".npz")  # occkit index writes .npz files only
+    where = "" if rebuilt == path else f" and point data.index at {rebuilt}"
     return (
         f"{what} of an older occkit (occkit-index/{number}); this occkit reads {INDEX_FORMAT} (.npz): rebuild it "
-        f"with `{shlex.join([*command, '--out', str(path)])}`"
+        f"with `{shlex.join([*command, '--out', str(rebuilt)])}`{where}"
     )
 
 
@@ -1495,11 +1492,35 @@ def _string_table(path: Path, arrays: dict[str, np.ndarray]) -> list[str]:
         raise IndexFormatError(f"{path}: the string table is not UTF-8 ({error})") from None
 
 
+def _labelled_tokens(folder: Path) -> set[str]:
+    """Names of the sample folders in an Occ3D scene folder (``gts/<scene>``) that hold a ``labels.npz``: what a
+    record's ``occ_path`` says. One directory listing, one stat per sample folder; none for a missing folder."""
+    try:
+        entries = list(os.scandir(folder))
+    except (FileNotFoundError, NotADirectoryError):
+        return set()
+    return {entry.name for entry in entries if os.path.isfile(os.path.join(entry.path, "labels.npz"))}
+
+
+def _label_listing(root: Path) -> Iterator[str]:
+    """``scene/token`` of every Occ3D ``labels.npz`` under ``root/gts``, in sorted order (an index's ``occ_path``
+    values come from this listing, so its cache key covers it: labels added or removed after the cache was built)."""
+    try:
+        scenes = sorted(entry.name for entry in os.scandir(root / "gts") if entry.is_dir())
+    except (FileNotFoundError, NotADirectoryError):
+        return
+    for scene in scenes:
+        for token in sorted(_labelled_tokens(root / "gts" / scene)):
+            yield f"{scene}/{token}"
+
+
 def tables_key(root: str | Path, version: str, max_sweeps: int) -> str:
     """What an index built from ``root/version`` depends on, as one digest: the index format, the occkit version,
-    ``max_sweeps``, and the size and SHA-256 of each of the 13 table files (their content: modification times are
-    not trusted, a file can change and keep an old one). The dataset's index cache stores it and is rebuilt when it
-    differs. Hashing reads every table once: about 0.7 s per GB on one core when the files are in the page cache.
+    ``max_sweeps``, the size and SHA-256 of each of the 13 table files (their content: modification times are not
+    trusted, a file can change and keep an old one), and which key frames have an Occ3D ``labels.npz`` under
+    ``root/gts`` (each record's ``occ_path``). The dataset's index cache stores it and is rebuilt when it differs.
+    Hashing reads every table once: about 0.7 s per GB on one core when the files are in the page cache; the label
+    listing is one directory listing per scene and one stat per frame.
     """
     folder = Path(root) / version
     digest = hashlib.sha256(f"{INDEX_FORMAT}\0{__version__}\0max_sweeps={max_sweeps}\n".encode())
@@ -1516,4 +1537,8 @@ def tables_key(root: str | Path, version: str, max_sweeps: int) -> str:
         except FileNotFoundError:
             size = -1  # building fails and names the table
         digest.update(f"{name}\0{size}\0{table.hexdigest()}\n".encode())
+    labels = hashlib.sha256()
+    for entry in _label_listing(Path(root)):
+        labels.update(f"{entry}\n".encode())
+    digest.update(f"labels\0{labels.hexdigest()}\n".encode())
     return f"sha256:{digest.hexdigest()}"

@@ -9,19 +9,24 @@ silent mistakes (a wrong shape, a float mask, a SurroundOcc file read as Occ3D) 
 
 from __future__ import annotations
 
-import zipfile
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from occkit.archives import NpyHeader, NpzArchive, read_npy
 from occkit.classes import IGNORE_INDEX, OCC3D, SURROUNDOCC
 from occkit.data.names import path_under, safe_name
 from occkit.geometry.grid import OCC3D_GRID, SURROUNDOCC_GRID, VoxelGrid
 from occkit.label_space import LabelSpace
 
-__all__ = ["LabelError", "OccupancyLabels", "read_occ3d_labels", "read_surroundocc_labels", "label_file",
-           "read_labels"]
+__all__ = ["LabelError", "OccupancyLabels", "MAX_FLOW_SPEED", "read_occ3d_labels", "check_flow",
+           "read_surroundocc_labels", "label_file", "read_labels"]
+
+#: The fastest occupancy flow (m/s) a label or prediction may hold: faster than anything on a road (the simulator's
+#: ego drives at most 40 m/s), and far from where sums of errors overflow float32.
+MAX_FLOW_SPEED = 100.0
 
 
 class LabelError(ValueError):
@@ -56,30 +61,26 @@ def read_occ3d_labels(
 
     Masks are returned as bool: the official metric indexes with them, and a uint8 mask would index as integers.
     With ``flow``, the file must also carry the occupancy flow as OpenOcc v2's ``labels.npz`` does (key ``flow``,
-    float ``(X, Y, Z, 2)``, m/s); it is returned as float32.
+    float ``(X, Y, Z, 2)``, m/s, at most :data:`MAX_FLOW_SPEED`); it is returned as float32. Each array's shape and
+    dtype are checked from its header before its data is read (:class:`~occkit.archives.NpzArchive`), so a file
+    that declares a larger array costs no memory.
     """
     path = Path(path)
     where = _where(path, token)
     wanted = ("semantics", "mask_lidar", "mask_camera") + (("flow",) if flow else ())
     try:
-        with np.load(path, allow_pickle=False) as archive:
-            missing = [key for key in wanted if key not in archive.files]
+        with NpzArchive(path, "labels", where, LabelError) as archive:
+            missing = [key for key in wanted if key not in archive]
             if missing:
                 hint = " (occkit sim writes label files with flow)" if missing == ["flow"] else ""
                 raise LabelError(
-                    f"{where}: has no {', '.join(missing)} (keys: {', '.join(archive.files) or 'none'}){hint}"
+                    f"{where}: has no {', '.join(missing)} (keys: {', '.join(archive.keys) or 'none'}){hint}"
                 )
-            arrays = {key: archive[key] for key in wanted}
+            arrays = {key: archive.read(key, _expect(key, where, grid)) for key in wanted}
     except FileNotFoundError:
         raise LabelError(f"{where}: label file not found") from None
-    except (OSError, ValueError, zipfile.BadZipFile, EOFError) as error:
+    except OSError as error:
         raise LabelError(f"{where}: cannot read labels ({error})") from error
-    for key in ("semantics", "mask_lidar", "mask_camera"):
-        array = arrays[key]
-        if array.shape != grid.shape:
-            raise LabelError(f"{where}: {key} has shape {array.shape} but expected {grid.shape}")
-        if array.dtype not in (np.uint8, np.bool_):
-            raise LabelError(f"{where}: {key} has dtype {array.dtype} but expected uint8")
     for key in ("mask_lidar", "mask_camera"):
         if arrays[key].dtype == np.uint8 and arrays[key].max(initial=0) > 1:
             raise LabelError(f"{where}: {key} holds values {sorted(np.unique(arrays[key]).tolist())[:8]}, not 0/1")
@@ -91,18 +92,43 @@ def read_occ3d_labels(
             f"{where}: semantics holds class ids {sorted(np.unique(semantics[bad]).tolist())} beyond 0..{last}"
         )
     return OccupancyLabels(semantics, arrays["mask_camera"].astype(bool), arrays["mask_lidar"].astype(bool),
-                           _check_flow(arrays["flow"], where, grid) if flow else None)  # fmt: skip
+                           check_flow(arrays["flow"], where, LabelError) if flow else None)  # fmt: skip
 
 
-def _check_flow(flow: np.ndarray, where: str, grid: VoxelGrid) -> np.ndarray:
-    """``flow`` as float32 after checking its shape, dtype and values."""
-    if flow.shape != (*grid.shape, 2):
-        raise LabelError(f"{where}: flow has shape {flow.shape} but expected {(*grid.shape, 2)}")
-    if flow.dtype.kind != "f":
-        raise LabelError(f"{where}: flow has dtype {flow.dtype} but expected a float type (m/s)")
+def _expect(key: str, where: str, grid: VoxelGrid) -> Callable[[NpyHeader], None]:
+    """The header check of array ``key`` of a ``labels.npz``: the grid's shape, uint8 (or bool), float flow."""
+    shape = (*grid.shape, 2) if key == "flow" else grid.shape
+
+    def check(header: NpyHeader) -> None:
+        if header.shape != shape:
+            raise LabelError(f"{where}: {key} has shape {header.shape} but expected {shape}")
+        if key == "flow" and header.dtype.kind != "f":
+            raise LabelError(f"{where}: flow has dtype {header.dtype} but expected a float type (m/s)")
+        if key != "flow" and header.dtype not in (np.uint8, np.bool_):
+            raise LabelError(f"{where}: {key} has dtype {header.dtype} but expected uint8")
+
+    return check
+
+
+def check_flow(flow: np.ndarray, where: str, error: type[ValueError] = ValueError) -> np.ndarray:
+    """``flow`` (``(..., 2)`` m/s, shape and dtype already checked) as float32, after checking it is finite and no
+    faster than :data:`MAX_FLOW_SPEED`: a value like 3e38 is finite, but summed in a loss it overflows to an
+    infinite ``loss/flow`` at every step.
+
+    Raises:
+        error: naming ``where``, how many voxels are wrong, and the fastest value with the bound.
+    """
     flow = flow.astype(np.float32, copy=False)
     if not np.isfinite(flow).all():
-        raise LabelError(f"{where}: flow holds {int((~np.isfinite(flow)).any(-1).sum())} voxels that are not finite")
+        raise error(f"{where}: flow holds {int((~np.isfinite(flow)).any(-1).sum())} voxels that are not finite")
+    if np.abs(flow).max(initial=0.0) <= MAX_FLOW_SPEED / np.sqrt(2):  # the common case, without the speeds
+        return flow
+    speed = np.hypot(flow[..., 0].astype(np.float64), flow[..., 1].astype(np.float64))  # (3e38, 3e38) is beyond float32
+    fastest = float(speed.max(initial=0.0))
+    if fastest > MAX_FLOW_SPEED:
+        raise error(f"{where}: flow holds {int((speed > MAX_FLOW_SPEED).sum())} voxels faster than "
+                    f"{MAX_FLOW_SPEED:g} m/s (up to {fastest:.3g} m/s): flow is in m/s, and nothing on a road is "
+                    "that fast")  # fmt: skip
     return flow
 
 
@@ -111,18 +137,27 @@ def read_surroundocc_labels(
 ) -> OccupancyLabels:
     """Read SurroundOcc sparse labels: int ``(N, 4)`` rows ``(x, y, z, label)``, labels 1..16, 0 = noise.
 
-    Returns dense ``(X, Y, Z)`` uint8 semantics with unlisted voxels empty (0) and noise voxels ignored (255).
+    Returns dense ``(X, Y, Z)`` uint8 semantics with unlisted voxels empty (0) and noise voxels ignored (255). The
+    header is checked before the rows are read: integer ``(N, 4)`` with at most one row per voxel of the grid.
     """
     path = Path(path)
     where = _where(path, token)
+    voxels = int(np.prod(grid.shape))
+
+    def check(header: NpyHeader) -> None:
+        shape, dtype = header.shape, header.dtype
+        if len(shape) != 2 or shape[1] != 4 or dtype.kind not in "iu":
+            raise LabelError(f"{where}: expected integer rows (N, 4) = (x, y, z, label), got {dtype} {shape}")
+        if shape[0] > voxels:
+            raise LabelError(f"{where}: declares {shape[0]} rows, more than the {voxels} voxels of the "
+                             f"{grid.shape} grid")  # fmt: skip
+
     try:
-        rows = np.load(path, allow_pickle=False)
+        rows = read_npy(path, "labels", check, where, LabelError)
     except FileNotFoundError:
         raise LabelError(f"{where}: label file not found") from None
-    except (OSError, ValueError) as error:
+    except OSError as error:
         raise LabelError(f"{where}: cannot read labels ({error})") from error
-    if rows.ndim != 2 or rows.shape[1] != 4 or not np.issubdtype(rows.dtype, np.integer):
-        raise LabelError(f"{where}: expected integer rows (N, 4) = (x, y, z, label), got {rows.dtype} {rows.shape}")
     index, labels = rows[:, :3], rows[:, 3]
     outside = ((index < 0) | (index >= np.array(grid.shape))).any(axis=1)
     if outside.any():

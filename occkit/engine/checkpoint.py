@@ -5,7 +5,9 @@ A run folder holds ``step-00000120.pt`` files (the last ``keep_last``), ``best.p
 flushed to disk and renamed over the target, so a run killed at any moment (SIGKILL included) leaves either the
 previous file or the new one, never a truncated one; ``last.json`` is only updated after its checkpoint is complete.
 
-Checkpoints are plain dicts of tensors, numbers and strings, loaded with ``torch.load(weights_only=True)``.
+Checkpoints are plain dicts of tensors, numbers and strings, loaded with ``torch.load(weights_only=True)`` after
+their declared sizes were checked (:func:`occkit.weight_files.load_torch_file`, which convert and the pretrained
+backbones read through too).
 """
 
 from __future__ import annotations
@@ -13,7 +15,7 @@ from __future__ import annotations
 import json
 import os
 import random
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -23,6 +25,7 @@ import torch
 from occkit.config import to_dict
 from occkit.data.dataset import DatasetConfig
 from occkit.experiment import TrainConfig
+from occkit.weight_files import check_finite, load_torch_file
 from occkit.zoo import config_class
 
 __all__ = [
@@ -146,16 +149,19 @@ def latest_checkpoint(folder: str | Path) -> Path | None:
 
 
 def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") -> dict[str, Any]:
-    """Load a checkpoint with ``weights_only=True``; anything that is not an occkit checkpoint is a clear error."""
+    """Load a checkpoint through :func:`~occkit.weight_files.load_torch_file` (sizes checked first, weights-only,
+    refusals on one line); anything that is not an occkit checkpoint, or whose model weights are NaN or infinite,
+    is a clear error."""
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"checkpoint {path} does not exist")
-    try:
-        payload = torch.load(path, map_location=map_location, weights_only=True)
-    except Exception as error:  # torch raises several types for corrupt or foreign files
-        raise ValueError(f"{path} is not a readable checkpoint: {type(error).__name__}: {error}") from error
+    payload = load_torch_file(path, map_location)
     if not isinstance(payload, dict) or payload.get("format") != FORMAT:
         raise ValueError(f"{path} is not an occkit checkpoint (no '{FORMAT}' format marker)")
+    for key in ("model", "ema"):
+        weights = payload.get(key)
+        if isinstance(weights, Mapping) and all(isinstance(value, torch.Tensor) for value in weights.values()):
+            check_finite(weights, path, f"'{key}' weights")
     return payload
 
 

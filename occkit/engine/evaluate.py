@@ -21,6 +21,7 @@ from torch import nn
 from occkit import zoo
 from occkit.data.collate import collate
 from occkit.data.dataset import OccupancyDataset
+from occkit.data.loader import sample_loader
 from occkit.engine import distributed
 from occkit.engine.checkpoint import check_compatible, load_checkpoint
 from occkit.experiment import Experiment
@@ -56,8 +57,10 @@ def split_loader(dataset: OccupancyDataset, batch_size: int, workers: int, conte
         sampler = distributed.EpochSampler(len(dataset), batch_size, shuffle=False, population=population)
     else:
         sampler = distributed.EpochSampler(len(dataset), batch_size, rank, world, shuffle=False)
-    return torch.utils.data.DataLoader(dataset, batch_size=batch_size, sampler=sampler, num_workers=workers,
-                                       collate_fn=collate, generator=torch.Generator())  # fmt: skip
+    # sample_loader: a worker's error arrives as the worker raised it (one line naming the sample), not as torch's
+    # "Caught X in DataLoader worker process" with the worker's traceback in its message.
+    return sample_loader(dataset, batch_size=batch_size, sampler=sampler, num_workers=workers, collate_fn=collate,
+                         generator=torch.Generator())  # fmt: skip
 
 
 def stream_memory(model: nn.Module, batch_size: int) -> tuple[StreamMemory | None, int]:

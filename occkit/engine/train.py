@@ -30,6 +30,7 @@ from occkit.config import ConfigError
 from occkit.convert import load_partial
 from occkit.data.collate import collate
 from occkit.data.dataset import OccupancyDataset
+from occkit.data.loader import sample_loader
 from occkit.data.sampling import cbgs_indices
 from occkit.engine import distributed
 from occkit.engine.checkpoint import (
@@ -49,6 +50,7 @@ from occkit.experiment import Experiment, TrainConfig, check_label_space, experi
 from occkit.metrics.evaluate import plot_per_class_iou
 from occkit.models import pretrained
 from occkit.models.temporal import StreamMemory
+from occkit.outputs import OutputLock
 from occkit.types import Batch
 
 __all__ = ["train", "ModelEMA", "TrainResult", "check_output_folder", "check_initial_weights", "accumulation"]
@@ -270,7 +272,7 @@ class _Trainer:
         workers = self.experiment.train.workers
         # A private generator: creating the iterator must not draw from the global RNG, or a resumed run would
         # draw at another moment than the uninterrupted one.
-        return torch.utils.data.DataLoader(
+        return sample_loader(
             self.dataset, batch_size=self.experiment.train.batch_size, sampler=self.sampler, num_workers=workers,
             collate_fn=collate, drop_last=True, generator=torch.Generator().manual_seed(self.epoch),
             persistent_workers=False, pin_memory=self.context.device.type == "cuda",
@@ -330,7 +332,10 @@ def train(
     started = time.perf_counter()
     out = Path(out)
     context = distributed.setup(device)
+    # One run at a time per run folder, refused before anything is read; rank 0 holds it for the whole group.
+    lock = OutputLock(out, "occkit train", enabled=context.is_main)
     try:
+        lock.acquire()
         if resume is None:  # a missing weights file fails before any data is read or anything written
             if context.is_main:  # rank 0 downloads into the cache; the others read it there
                 check_initial_weights(experiment)
@@ -358,6 +363,7 @@ def train(
         metrics = _run(trainer, log, progress, on_step)
         return TrainResult(out, trainer.step, metrics, trainer.best_miou, time.perf_counter() - started)
     finally:
+        lock.release()
         distributed.teardown()
 
 

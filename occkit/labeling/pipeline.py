@@ -35,11 +35,15 @@ from occkit.label_space import LabelSpace, label_space
 from occkit.labeling.aggregate import AggregateConfig, aggregate_scene
 from occkit.labeling.sources import ScenePlan, lidarseg_to_occ3d, plan_scenes
 from occkit.labeling.voxels import DENSIFY_METHODS, DensifyConfig, densify_poisson, key_frame_points, vote
+from occkit.outputs import OutputLock, check_replaceable, publish_folder, staging_folder
 
 __all__ = ["LabelConfig", "SUMMARY_FILE", "check_label_output", "label_scene", "label_dataset"]
 
-#: The summary ``occkit label`` writes beside the labels; it also marks a folder as its output.
+#: The summary ``occkit label`` writes beside the labels; it also marks a folder as its output (an older occkit's
+#: too, which wrote no manifest).
 SUMMARY_FILE = "labeling.json"
+#: The command named in the output folder's lock and manifest.
+COMMAND = "occkit label"
 
 
 @dataclass(frozen=True)
@@ -150,15 +154,14 @@ def label_scene(plan: ScenePlan, lookup: np.ndarray, config: LabelConfig, out: P
 
 def check_label_output(out: Path, overwrite: bool) -> None:
     """Refuse an ``out`` that :func:`label_dataset` may not write: a file, or a non-empty folder unless
-    ``overwrite`` and it holds a previous ``occkit label`` output (its :data:`SUMMARY_FILE`)."""
+    ``overwrite`` and it holds a previous ``occkit label`` output and nothing else
+    (:func:`occkit.outputs.check_replaceable`: every file, nested ones too, listed in its manifest)."""
     if out.exists() and not out.is_dir():
         raise FileExistsError(f"--out {out} exists and is not a directory")
     if out.exists() and any(out.iterdir()):
         if not overwrite:
             raise FileExistsError(f"--out {out} exists and is not empty; pass --overwrite to replace it")
-        if not (out / SUMMARY_FILE).is_file():
-            raise FileExistsError(f"--overwrite refused: {out} has no {SUMMARY_FILE}, so occkit label did not write "
-                                  "it; choose another folder; nothing was deleted")  # fmt: skip
+        check_replaceable(out, COMMAND, SUMMARY_FILE)
 
 
 def _label_scene_reporting(plan: ScenePlan, lookup: np.ndarray, config: LabelConfig, out: Path, queue) -> dict:
@@ -181,7 +184,8 @@ def label_dataset(
     """Label every key frame of the dataset at ``root`` (tables in ``root/version``) into ``out``.
 
     The labels are written to a hidden folder beside ``out`` and moved into place when all scenes are done, so an
-    interrupted run leaves no partial output.
+    interrupted run leaves no partial output. The run holds the lock of ``out``
+    (:class:`occkit.outputs.OutputLock`): a second run into the same folder is refused before any work.
 
     Args:
         root, version: the dataset.
@@ -202,14 +206,21 @@ def label_dataset(
     if workers < 1:
         raise ValueError(f"workers must be >= 1, got {workers}")
     out = Path(out)
-    check_label_output(out, overwrite)
-    tables = load_tables(root, version)
+    with OutputLock(out, COMMAND):
+        check_label_output(out, overwrite)
+        return _label_locked(load_tables(root, version), root, version, out, config, workers, scenes, progress,
+                             on_scene, on_start)  # fmt: skip
+
+
+def _label_locked(tables, root, version, out: Path, config: LabelConfig, workers: int, scenes, progress, on_scene,
+                  on_start) -> dict:  # fmt: skip
+    """:func:`label_dataset` once the output folder is locked and checked."""
     plans = plan_scenes(tables, scenes, config.sweeps)
     lookup = lidarseg_to_occ3d(tables)
     if on_start is not None:
         on_start(sum(len(plan.key_frames) for plan in plans))
-    staging = out.parent / f".{out.name}.partial"
-    if staging.exists():
+    staging = staging_folder(out)
+    if staging.exists():  # left by a run that died: the lock says no other run is writing it
         shutil.rmtree(staging)
     staging.mkdir(parents=True)
     start = time.perf_counter()
@@ -228,9 +239,7 @@ def label_dataset(
             "workers": workers,
         }
         (staging / SUMMARY_FILE).write_text(json.dumps(summary, indent=1) + "\n")
-        if out.exists():
-            shutil.rmtree(out)
-        staging.rename(out)
+        publish_folder(staging, out, COMMAND, SUMMARY_FILE)
     except BaseException:
         shutil.rmtree(staging, ignore_errors=True)
         raise

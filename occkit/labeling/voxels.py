@@ -17,6 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from occkit.errors import require_module
 from occkit.geometry.grid import VoxelGrid
 from occkit.labeling.aggregate import AggregateConfig, SceneCloud, object_membership, points_in_boxes
 from occkit.labeling.sources import Boxes
@@ -108,14 +109,10 @@ def vote(points: np.ndarray, labels: np.ndarray, grid: VoxelGrid, empty: int) ->
 
 
 def require_open3d():
-    """The open3d module; ImportError with the install command where it is missing."""
-    try:
-        import open3d
-    except ImportError as error:
-        raise ImportError(
-            f"densify=poisson needs open3d ({error}): pip install -e \".[labels]\" (on Linux open3d also needs the "
-            "system library libusb-1.0, e.g. apt-get install libusb-1.0-0)"
-        ) from None
+    """The open3d module; a :class:`~occkit.errors.MissingDependencyError` (exit code 2 on the command line: the
+    user can install it) with the install command where it is missing."""
+    open3d = require_module("open3d", "densify=poisson", 'pip install -e ".[labels]" (on Linux open3d also needs '
+                            "the system library libusb-1.0, e.g. apt-get install libusb-1.0-0)")  # fmt: skip
     # Poisson's solver warns about numerical corner cases on every frame; errors still show.
     open3d.utility.set_verbosity_level(open3d.utility.VerbosityLevel.Error)
     return open3d

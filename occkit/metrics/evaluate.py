@@ -3,7 +3,9 @@
 Ground truth is the label space's layout (:mod:`occkit.label_space`): Occ3D's ``gts/<scene>/<token>/labels.npz``, or
 SurroundOcc's ``samples/<LiDAR file>.npy`` (named after the LiDAR file, so the nuScenes tables are needed to pair
 them with sample tokens). Predictions are one ``<token>.npz`` per frame holding ``semantics`` (Occ3D challenge
-submissions, ``occkit predict``) or ``pred`` (SparseOcc), uint8 class ids on the label space's grid. Frames are read
+submissions, ``occkit predict``) or ``pred`` (SparseOcc), uint8 class ids on the label space's grid (a file with
+both is scored on ``semantics``, and a note says so). Files are untrusted: each array's shape and dtype are checked
+from its header before its data is read (:mod:`occkit.archives`), so memory is bounded by the grid. Frames are read
 in a thread pool; each worker reduces its frame to a confusion matrix and, for RayIoU, to
 ray counts, so memory stays flat however many frames there are. The totals agree with the official ``Metric_mIoU``
 and SparseOcc's ``main_rayiou`` because both metrics are sums of per-frame counts.
@@ -16,18 +18,19 @@ from __future__ import annotations
 import io
 import json
 import math
-import zipfile
 from collections.abc import Callable, Mapping
 from concurrent.futures import ThreadPoolExecutor, as_completed
 from pathlib import Path
+from typing import Any, NamedTuple
 
 import numpy as np
 
-from occkit.data.labels import label_file, read_labels
+from occkit.archives import NpyHeader, NpzArchive
+from occkit.data.labels import check_flow, label_file, read_labels
 from occkit.data.names import path_under, safe_name
 from occkit.label_space import OCC3D_SPACE, LabelSpace, label_space
 from occkit.metrics.confusion import OccupancyMetric
-from occkit.metrics.rayiou import FLOW_CLASSES, RAYIOU_THRESHOLDS, rayiou, rayiou_from_counts
+from occkit.metrics.rayiou import AVE_THRESHOLD, FLOW_CLASSES, RAYIOU_THRESHOLDS, rayiou, rayiou_from_counts
 
 __all__ = [
     "write_prediction",
@@ -53,25 +56,6 @@ _LIST_AT_MOST = 10
 def _token_list(tokens: list[str]) -> str:
     shown = ", ".join(tokens[:_LIST_AT_MOST])
     return shown + (f", ... ({len(tokens) - _LIST_AT_MOST} more)" if len(tokens) > _LIST_AT_MOST else "")
-
-
-def _load_npz(path: Path, what: str) -> dict[str, np.ndarray]:
-    """Every array of an npz archive; any failure becomes a ValueError naming the file."""
-    try:
-        loaded = np.load(path, allow_pickle=False)
-        if not isinstance(loaded, np.lib.npyio.NpzFile):
-            raise ValueError(f"{path}: expected an npz archive of {what}, got a bare {type(loaded).__name__}")
-        with loaded:
-            return {key: loaded[key] for key in loaded.files}
-    except FileNotFoundError:
-        raise ValueError(f"{path}: {what} file not found") from None
-    except ValueError as error:
-        if str(path) in str(error):
-            raise
-        # np.load's own ValueError (neither npy nor npz) does not say which file it was reading.
-        raise ValueError(f"{path}: cannot read {what} ({error})") from error
-    except (OSError, zipfile.BadZipFile, EOFError) as error:
-        raise ValueError(f"{path}: cannot read {what} ({error})") from error
 
 
 def find_gt_labels(gt_root: str | Path, space: LabelSpace | str = OCC3D_SPACE,
@@ -124,10 +108,9 @@ def write_prediction(folder: Path, token: str, semantics: np.ndarray, flow: np.n
         arrays["flow"] = flow.astype(np.float32)
     buffer = io.BytesIO()
     np.savez_compressed(buffer, **arrays)
-    temporary = path.with_name(f".{path.name}.tmp")
-    temporary.write_bytes(buffer.getvalue())
-    temporary.replace(path)
-    return path
+    from occkit.outputs import write_atomic  # a failed write (a full disk) removes its temporary file
+
+    return write_atomic(path, buffer.getvalue())
 
 
 def read_prediction(path: str | Path, space: LabelSpace | str = OCC3D_SPACE) -> np.ndarray:
@@ -138,47 +121,72 @@ def read_prediction(path: str | Path, space: LabelSpace | str = OCC3D_SPACE) -> 
         ValueError: unreadable file, no known key, wrong shape, non-integer dtype or ids outside the space's classes;
             the message names the file.
     """
-    path = Path(path)
-    return _prediction_grid(_load_npz(path, "prediction"), path, label_space(space))
+    return _read_prediction(Path(path), label_space(space), flow=False).grid
 
 
 def read_prediction_flow(path: str | Path, space: LabelSpace | str = OCC3D_SPACE) -> np.ndarray | None:
     """The ``flow`` of a prediction file as float32 ``(X, Y, Z, 2)`` m/s, or None when it has none.
 
     Raises:
-        ValueError: unreadable file, or a flow of the wrong shape or dtype or with values that are not finite.
+        ValueError: unreadable file, or a flow of the wrong shape or dtype, not finite, or faster than
+            :data:`~occkit.data.labels.MAX_FLOW_SPEED`.
     """
-    path = Path(path)
-    return _prediction_flow(_load_npz(path, "prediction"), path, label_space(space))
+    return _read_prediction(Path(path), label_space(space), flow=True).flow
 
 
-def _prediction_flow(arrays: Mapping[str, np.ndarray], path: Path, space: LabelSpace) -> np.ndarray | None:
-    flow = arrays.get("flow")
-    if flow is None:
-        return None
-    shape = (*space.grid.shape, 2)
-    if flow.shape != shape or flow.dtype.kind != "f":
-        raise ValueError(f"{path}: flow must be a float {shape} array (m/s), got {flow.dtype} {flow.shape}")
-    if not np.isfinite(flow).all():
-        raise ValueError(f"{path}: flow holds values that are not finite")
-    return flow.astype(np.float32, copy=False)
+class _Prediction(NamedTuple):
+    """One prediction file's grid, its flow (None: not asked for, or absent), and which grid keys it holds."""
+
+    grid: np.ndarray
+    flow: np.ndarray | None
+    keys: tuple[str, ...]
+    """The :data:`PRED_KEYS` the file holds; the grid is the first one's."""
 
 
-def _prediction_grid(arrays: Mapping[str, np.ndarray], path: Path, space: LabelSpace) -> np.ndarray:
-    shape, last = space.grid.shape, space.num_classes - 1
-    key = next((k for k in PRED_KEYS if k in arrays), None)
-    if key is None:
-        raise ValueError(f"{path}: has none of the keys {', '.join(PRED_KEYS)} (keys: {', '.join(arrays) or 'none'})")
-    grid = arrays[key]
-    if grid.shape != shape:
-        raise ValueError(f"{path}: {key} has shape {grid.shape} but {space.name} predictions have {shape}")
-    if not np.issubdtype(grid.dtype, np.integer):
-        raise ValueError(f"{path}: {key} has dtype {grid.dtype} but expected uint8 class ids")
+def _read_prediction(path: Path, space: LabelSpace, flow: bool) -> _Prediction:
+    """The grid (and with ``flow`` the flow) of a prediction file, each array's shape and dtype checked from its
+    header before its data is read: a file declaring a larger array than the grid costs no memory."""
+    try:
+        with NpzArchive(path, "prediction") as archive:
+            keys = tuple(key for key in PRED_KEYS if key in archive)
+            if not keys:
+                raise ValueError(f"{path}: has none of the keys {', '.join(PRED_KEYS)} "
+                                 f"(keys: {', '.join(archive.keys) or 'none'})")  # fmt: skip
+            grid = archive.read(keys[0], _grid_check(path, keys[0], space))
+            pred_flow = archive.read("flow", _flow_check(path, space)) if flow and "flow" in archive else None
+    except FileNotFoundError:
+        raise ValueError(f"{path}: prediction file not found") from None
+    except OSError as error:
+        raise ValueError(f"{path}: cannot read prediction ({error})") from error
+    last = space.num_classes - 1
     bad = (grid < 0) | (grid > last)
     if bad.any():
-        raise ValueError(f"{path}: {key} holds class ids {np.unique(grid[bad])[:16].tolist()} outside 0..{last} "
+        raise ValueError(f"{path}: {keys[0]} holds class ids {np.unique(grid[bad])[:16].tolist()} outside 0..{last} "
                          f"({space.name})")  # fmt: skip
-    return grid.astype(np.uint8, copy=False)
+    if pred_flow is not None:
+        pred_flow = check_flow(pred_flow, str(path))
+    return _Prediction(grid.astype(np.uint8, copy=False), pred_flow, keys)
+
+
+def _grid_check(path: Path, key: str, space: LabelSpace) -> Callable[[NpyHeader], None]:
+    def check(header: NpyHeader) -> None:
+        if header.shape != space.grid.shape:
+            raise ValueError(f"{path}: {key} has shape {header.shape} but {space.name} predictions have "
+                             f"{space.grid.shape}")  # fmt: skip
+        if header.dtype.kind not in "iu":
+            raise ValueError(f"{path}: {key} has dtype {header.dtype} but expected uint8 class ids")
+
+    return check
+
+
+def _flow_check(path: Path, space: LabelSpace) -> Callable[[NpyHeader], None]:
+    shape = (*space.grid.shape, 2)
+
+    def check(header: NpyHeader) -> None:
+        if header.shape != shape or header.dtype.kind != "f":
+            raise ValueError(f"{path}: flow must be a float {shape} array (m/s), got {header.dtype} {header.shape}")
+
+    return check
 
 
 def read_ray_origins(path: str | Path, tokens: list[str]) -> dict[str, np.ndarray]:
@@ -191,47 +199,57 @@ def read_ray_origins(path: str | Path, tokens: list[str]) -> dict[str, np.ndarra
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"ray origins file not found: {path}")
-    arrays = _load_npz(path, "ray origins")
-    missing = [token for token in tokens if token not in arrays]
-    if missing:
-        raise ValueError(f"{path}: no ray origins for {len(missing)} of {len(tokens)} frames: {_token_list(missing)}")
-    origins = {token: arrays[token] for token in tokens}
-    for token, array in origins.items():
-        if array.ndim != 2 or array.shape[1] != 3 or len(array) == 0 or not np.issubdtype(array.dtype, np.floating):
-            raise ValueError(
-                f"{path}: origins of {token} must be a float (T, 3) array, got {array.dtype} {array.shape}"
-            )
+
+    def origins_of(token: str) -> Callable[[NpyHeader], None]:
+        def check(header: NpyHeader) -> None:
+            shape = header.shape
+            if len(shape) != 2 or shape[1] != 3 or shape[0] == 0 or header.dtype.kind != "f":
+                raise ValueError(f"{path}: origins of {token} must be a float (T, 3) array, got {header.dtype} {shape}")
+
+        return check
+
+    try:
+        with NpzArchive(path, "ray origins") as archive:
+            missing = [token for token in tokens if token not in archive]
+            if missing:
+                raise ValueError(f"{path}: no ray origins for {len(missing)} of {len(tokens)} frames: "
+                                 f"{_token_list(missing)}")  # fmt: skip
+            origins = {token: archive.read(token, origins_of(token)) for token in tokens}
+    except OSError as error:
+        raise ValueError(f"{path}: cannot read ray origins ({error})") from error
     return {token: array.astype(np.float64, copy=False) for token, array in origins.items()}
 
 
 def _score_frame(
     space: LabelSpace, token: str, gt_path: Path, pred_path: Path | None, mask: str | None,
     origins: np.ndarray | None,
-) -> tuple[np.ndarray, dict | None]:
-    """Confusion matrix of one frame and, when ``origins`` is given, its RayIoU counts (with the velocity errors
-    when the prediction carries flow)."""
+) -> tuple[np.ndarray, dict | None, tuple[str, ...]]:
+    """Confusion matrix of one frame, its RayIoU counts when ``origins`` is given (with the velocity errors when the
+    prediction carries flow), and the grid keys its prediction file holds (for the note on files with two)."""
     # A frame without a prediction (allowed by the caller) is scored as if everything were predicted free.
     if pred_path is None:
-        pred, pred_flow = np.full(space.grid.shape, space.free_index, np.uint8), None
-    else:
-        arrays = _load_npz(pred_path, "prediction")
-        pred, pred_flow = _prediction_grid(arrays, pred_path, space), _prediction_flow(arrays, pred_path, space)
+        prediction = _Prediction(np.full(space.grid.shape, space.free_index, np.uint8), None, ())
+    else:  # flow is only read where it is scored: RayIoU's velocity errors
+        prediction = _read_prediction(pred_path, space, flow=origins is not None)
+    pred, pred_flow = prediction.grid, prediction.flow
     scored_flow = pred_flow is not None and origins is not None
     labels = read_labels(space, gt_path, token, flow=scored_flow)
     metric = OccupancyMetric.for_space(space, mask)
     metric.update(labels.semantics, pred, labels.mask_camera, labels.mask_lidar)
     if origins is None:
-        return metric.confusion, None
+        return metric.confusion, None, prediction.keys
     flows = {"gt_flows": [labels.flow], "pred_flows": [pred_flow]} if scored_flow else {}
     try:
         counts = rayiou([labels.semantics], [pred], [origins], **flows)["counts"]
     except ValueError as error:
         raise ValueError(f"sample {token}: RayIoU failed ({error})") from error
-    return metric.confusion, counts
+    return metric.confusion, counts, prediction.keys
 
 
-def _pair_predictions(gt_paths: Mapping[str, Path], pred_dir: Path, allow_missing: bool) -> dict[str, Path | None]:
-    """Prediction file of each GT token (None where missing and allowed); raises listing the missing tokens."""
+def _pair_predictions(gt_paths: Mapping[str, Path], pred_dir: Path, allow_missing: bool,
+                      note: Callable[[str], None]) -> dict[str, Path | None]:  # fmt: skip
+    """Prediction file of each GT token (None where missing and allowed); raises listing the missing tokens, and
+    notes the files that match no ground-truth frame (a wrong --preds or --gt shows up there)."""
     if not pred_dir.is_dir():
         raise FileNotFoundError(f"prediction folder not found: {pred_dir}")
     available = {path.stem: path for path in pred_dir.glob("*.npz")}
@@ -241,6 +259,11 @@ def _pair_predictions(gt_paths: Mapping[str, Path], pred_dir: Path, allow_missin
             f"{pred_dir}: no prediction for {len(missing)} of {len(gt_paths)} frames: {_token_list(missing)} "
             "(pass --allow-missing to score them as all free)"
         )
+    extra = sorted(name for name in available if name not in gt_paths)
+    if extra:
+        shown = ", ".join(f"{name}.npz" for name in extra[:2]) + (", ..." if len(extra) > 2 else "")
+        note(f"{len(extra)} of the {len(available)} files in {pred_dir} match no ground-truth frame and were not "
+             f"scored ({shown})")  # fmt: skip
     return {token: available.get(token) for token in gt_paths}
 
 
@@ -255,6 +278,7 @@ def evaluate_predictions(
     progress: Callable[[int], None] | None = None,
     space: LabelSpace | str = OCC3D_SPACE,
     frames: Mapping[str, tuple[str, str]] | None = None,
+    note: Callable[[str], None] | None = None,
 ) -> dict:
     """Score every ground-truth frame against ``<token>.npz`` predictions with the label space's protocol.
 
@@ -271,6 +295,8 @@ def evaluate_predictions(
         progress: called with 1 after each frame.
         space: the label space of ground truth and predictions.
         frames: token -> (scene, LiDAR file) of the key frames (see :func:`find_gt_labels`).
+        note: called with each note on the run, once per kind (not per file): prediction files that match no
+            ground-truth frame, and files holding both ``semantics`` and ``pred`` (``semantics`` is scored).
 
     Returns:
         ``miou``, ``iou``, ``per_class_iou`` {class: float or None}, ``label_space``, ``mask``, ``frames``,
@@ -295,7 +321,8 @@ def evaluate_predictions(
         raise ValueError("RayIoU needs ray origins (--ray-origins FILE.npz mapping token -> (T, 3) origins)")
     gt_paths = find_gt_labels(gt_root, space, frames)
     tokens = list(gt_paths)
-    pred_paths = _pair_predictions(gt_paths, Path(pred_dir), allow_missing)
+    note = note or (lambda text: None)
+    pred_paths = _pair_predictions(gt_paths, Path(pred_dir), allow_missing, note)
     origins: Mapping[str, np.ndarray] | None = None
     if compute_rayiou:
         origins = read_ray_origins(ray_origins, tokens) if isinstance(ray_origins, (str, Path)) else ray_origins
@@ -306,16 +333,19 @@ def evaluate_predictions(
     total = OccupancyMetric.for_space(space, mode)
     ray_gt = ray_pred = ray_tp = ave_sum = ave_count = 0
     flow_frames = 0
+    both_keys: list[str] = []  # tokens whose file holds semantics and pred
     with ThreadPoolExecutor(max_workers=workers) as pool:
-        futures = [
+        futures = {
             pool.submit(_score_frame, space, t, gt_paths[t], pred_paths[t], mode,
-                        None if origins is None else origins[t])
+                        None if origins is None else origins[t]): t
             for t in tokens
-        ]  # fmt: skip
+        }  # fmt: skip
         try:
             for future in as_completed(futures):
-                confusion, counts = future.result()
+                confusion, counts, keys = future.result()
                 total.confusion += confusion
+                if len(keys) > 1:
+                    both_keys.append(futures[future])
                 if counts is not None:
                     ray_gt = ray_gt + np.asarray(counts["gt"], np.int64)
                     ray_pred = ray_pred + np.asarray(counts["pred"], np.int64)
@@ -332,6 +362,10 @@ def evaluate_predictions(
                 future.cancel()
             raise
 
+    if both_keys:
+        first = pred_paths[min(both_keys)]
+        note(f"{len(both_keys)} prediction file(s) hold both {' and '.join(PRED_KEYS)}: {PRED_KEYS[0]} was scored "
+             f"(e.g. {first.name})")  # fmt: skip
     scores = total.compute()
     result = {
         "miou": _finite_or_none(scores["miou"]),
@@ -364,8 +398,13 @@ def _finite_or_none(value: float) -> float | None:
     return None if math.isnan(value) else float(value)
 
 
+def _undefined(value: float | None) -> bool:
+    """True for a score with nothing to average: ``None`` in ``metrics.json`` (JSON has no NaN), NaN in memory."""
+    return value is None or math.isnan(value)
+
+
 def _percent(value: float | None) -> str:
-    return "-" if value is None else f"{100 * value:.2f}"
+    return "-" if _undefined(value) else f"{100 * value:.2f}"
 
 
 def markdown_table(result: Mapping) -> str:
@@ -394,9 +433,31 @@ def markdown_table(result: Mapping) -> str:
             "| " + " | ".join(_percent(result[key]) for key in keys) + " |",
         ]
     if "mave" in result:
-        mave = "-" if result["mave"] is None else f"{result['mave']:.3f}"
-        lines += ["", "| mAVE (m/s) | OccScore |", "| ---: | ---: |", f"| {mave} | {_percent(result['occ_score'])} |"]
+        lines += _flow_lines(result)
     return "\n".join(lines) + "\n"
+
+
+def _nan_as_null(value: Any) -> Any:
+    """``value`` with every float NaN, nested in dicts and lists too, replaced by None (JSON's null)."""
+    if isinstance(value, float) and math.isnan(value):
+        return None
+    if isinstance(value, Mapping):
+        return {key: _nan_as_null(item) for key, item in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_nan_as_null(item) for item in value]
+    return value
+
+
+def _flow_lines(result: Mapping) -> list[str]:
+    """The mAVE and OccScore table; where they are undefined, "n/a" and why, instead of a bare ``nan``."""
+    if not _undefined(result["mave"]):
+        row = f"| {result['mave']:.3f} | {_percent(result['occ_score'])} |"
+        return ["", "| mAVE (m/s) | OccScore |", "| ---: | ---: |", row]
+    # The challenge's code gives NaN for both (a mean over no class, then max(nan, 0)); the value is kept as it is,
+    # the report says what it means.
+    return ["", "| mAVE (m/s) | OccScore |", "| ---: | ---: |", "| n/a | n/a |", "",
+            f"mAVE n/a: no true positive of a moving class ({', '.join(FLOW_CLASSES)}) within {AVE_THRESHOLD} m, "
+            "so no velocity error to average; OccScore n/a as it needs mAVE (both NaN, as in the challenge's code)"]
 
 
 def plot_per_class_iou(result: Mapping, path: str | Path, title: str | None = None) -> Path:
@@ -435,7 +496,8 @@ def write_report(result: Mapping, out_dir: str | Path) -> dict[str, Path]:
         "markdown": out_dir / "metrics.md",
         "plot": out_dir / "per_class_iou.png",
     }
-    paths["json"].write_text(json.dumps(dict(result), indent=2) + "\n")
+    # JSON has no NaN (Python would write a bare NaN that strict readers refuse): an undefined score is null.
+    paths["json"].write_text(json.dumps(_nan_as_null(dict(result)), indent=2, allow_nan=False) + "\n")
     paths["markdown"].write_text(markdown_table(result))
     plot_per_class_iou(result, paths["plot"])
     return paths

@@ -35,7 +35,7 @@ import torch
 from torch import Tensor, nn
 
 from occkit.config import ConfigError
-from occkit.weight_files import load_torch_file, read_safetensors
+from occkit.weight_files import check_finite, load_torch_file, read_safetensors
 
 __all__ = ["PretrainedUnavailable", "parse", "needed_file", "backbone_state", "initialise", "load_state_dict_file",
            "SETTING", "backbone_settings", "ensure_available"]
@@ -98,13 +98,11 @@ def needed_file(setting: str, depth: int) -> str:
 def load_state_dict_file(path: str | Path) -> dict[str, Tensor]:
     """Tensors of a local ``.safetensors`` or torch file, loaded without unpickling code
     (:mod:`occkit.weight_files`); an mmcv checkpoint's ``state_dict`` (or an occkit checkpoint's ``model``) is taken
-    out of it."""
+    out of it. Weights that are not finite are refused (a backbone of NaNs trains nothing, silently)."""
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"weights file {path} does not exist")
-    if path.suffix == ".safetensors":
-        return read_safetensors(path)[0]
-    state = load_torch_file(path)
+    state = read_safetensors(path)[0] if path.suffix == ".safetensors" else load_torch_file(path)
     if isinstance(state, dict):
         for key in ("state_dict", "model"):
             if isinstance(state.get(key), Mapping):
@@ -112,6 +110,7 @@ def load_state_dict_file(path: str | Path) -> dict[str, Tensor]:
                 break
     if not isinstance(state, Mapping) or not all(isinstance(v, Tensor) for v in state.values()):
         raise ValueError(f"{path} holds no state dict of tensors")
+    check_finite(state, path)
     return dict(state)
 
 

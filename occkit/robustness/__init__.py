@@ -1,7 +1,8 @@
 """Robustness of a trained model to sensor failures and corruptions (``occkit robustness``).
 
 The corruptions themselves are applied by the dataset (:mod:`occkit.data.corruptions`); this package picks the cases
-(:mod:`~occkit.robustness.suite`), runs and caches them (:mod:`~occkit.robustness.run`) and scores and reports them
+(:mod:`~occkit.robustness.suite`), runs them (:mod:`~occkit.robustness.run`), caches each case's scores under a
+fingerprint of everything they depend on (:mod:`~occkit.robustness.cache`) and scores and reports them
 (:mod:`~occkit.robustness.report`).
 """
 

@@ -2,69 +2,62 @@
 
 Each case (the clean data, or a corruption at a level) is one pass of :func:`~occkit.engine.evaluate.evaluate_model`
 over the split with the corruption set in the dataset config. Its scores are written to ``OUT/cases/<case>.json``
-as soon as it finishes, with a fingerprint of everything they depend on (the checkpoint's bytes, the data, the
-split, the seed, the corruption's parameters, the metric settings); a run started again reuses every case whose
-fingerprint matches and computes the rest, so an interrupted run loses at most the case it was in.
+as soon as it finishes, with a fingerprint of everything they depend on (:mod:`~occkit.robustness.cache`: the
+checkpoint's bytes, the data settings, tables and label files, the split, the seed, the case, the occkit version);
+a run started again reuses every case whose fingerprint matches and computes the rest, so an interrupted run loses
+at most the case it was in.
+
+Which cases apply follows what the model reads at inference (its config's ``sensors``, and a temporal stage), not
+what the dataset loads: DA-Occ and FlashOcc load LiDAR in training only as a depth target, so the LiDAR corruptions,
+``no_lidar`` and ``no_cameras`` are not applicable to them and stay out of mRR and mCE.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import json
 import time
 from collections.abc import Callable
-from importlib import metadata
 from pathlib import Path
 from typing import Any
 
-from occkit import __version__
 from occkit.data.corruptions import CORRUPTIONS
 from occkit.data.dataset import OccupancyDataset
-from occkit.data.index import tables_key
 from occkit.engine.checkpoint import atomic_write_text
 from occkit.engine.evaluate import dataset_ray_origins, evaluate_model, evaluation_dataset, load_trained
+from occkit.errors import InputError
+from occkit.robustness.cache import (
+    CASES_FOLDER,
+    cache_context,
+    case_fingerprint,
+    case_path,
+    check_case_paths,
+    read_cached,
+    write_case,
+)
 from occkit.robustness.report import METRICS, markdown, plot_resilience, plot_severity, score_summary
 from occkit.robustness.suite import CLEAN, Case, model_inputs, not_applicable, parse_suite
 
-__all__ = ["run_robustness", "CASES_FOLDER"]
+__all__ = ["run_robustness", "inference_inputs", "CASES_FOLDER"]
 
-#: Where each case's scores are cached, inside the output folder.
-CASES_FOLDER = "cases"
-
-
-def _sha256(path: Path) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as stream:
-        for block in iter(lambda: stream.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
+#: What a run writes beside the cache folder.
+REPORT_FILES = ("robustness.json", "robustness.md", "resilience.png", "severity.png")
 
 
-def _library_version(name: str) -> str | None:
-    try:
-        return metadata.version(name)
-    except metadata.PackageNotFoundError:
-        return None
+def inference_inputs(model: Any, model_config: Any) -> frozenset[str]:
+    """What ``model`` consumes at inference, in the terms of :attr:`~occkit.data.corruptions.Corruption.needs`: the
+    sensors its config declares (``sensors``: what its forward reads, not what the data loads for training targets)
+    and ``temporal`` when it has a history stage."""
+    sensors = {sensor.lower() for sensor in model_config.sensors}
+    return model_inputs("cameras" in sensors, "lidar" in sensors, getattr(model, "temporal", None) is not None)
 
 
-def _fingerprint(common: dict[str, Any], case: Case) -> dict[str, Any]:
-    """What a case's scores depend on; a cached case is reused only when its fingerprint is equal."""
-    fingerprint = {**common, "case": case.key}
-    if case.corruption is not None:
-        corruption = CORRUPTIONS[case.corruption]
-        fingerprint["params"] = corruption.levels[case.severity - 1]
-        if corruption.family == "images":  # the pixels are the library's
-            fingerprint["albumentations"] = _library_version("albumentations")
-    return json.loads(json.dumps(fingerprint))  # tuples -> lists, as read back from the file
-
-
-def _read_cached(path: Path, fingerprint: dict) -> dict | None:
-    try:
-        entry = json.loads(path.read_text())
-    except (OSError, ValueError):
-        return None  # absent, or cut short by a kill before the rename (never: it is written atomically)
-    return entry if entry.get("fingerprint") == fingerprint else None
+def _check_report_paths(out: Path) -> None:
+    """Refuse a folder standing where a report file goes, before any case is computed."""
+    for name in REPORT_FILES:
+        if (out / name).exists() and not (out / name).is_file():
+            raise InputError(f"{out / name} is not a file, where occkit robustness writes its {name}: remove it, "
+                             "or choose another --out")  # fmt: skip
 
 
 def run_robustness(
@@ -102,6 +95,9 @@ def run_robustness(
     started = time.perf_counter()
     out = Path(out)
     cases_folder = out / CASES_FOLDER
+    cases = parse_suite(suite)
+    _check_report_paths(out)
+    check_case_paths(cases_folder, [CLEAN, *cases])  # before any work: a blocked path would lose a computed case
     cases_folder.mkdir(parents=True, exist_ok=True)
     baseline_report = None
     if baseline is not None:
@@ -110,11 +106,10 @@ def run_robustness(
             baseline_report["corruptions"]  # noqa: B018 - the key that makes it a robustness report
         except (OSError, ValueError, KeyError, TypeError) as error:
             raise ValueError(f"--baseline {baseline}: not a robustness.json of occkit robustness ({error})") from error
-    cases = parse_suite(suite)
     model, experiment = load_trained(checkpoint, device)
     clean_data = evaluation_dataset(experiment, data, split or experiment.train.val_split)
     config = dataclasses.replace(clean_data.config, seed=seed)
-    inputs = model_inputs(bool(config.cameras), config.sweeps >= 0, getattr(model, "temporal", None) is not None)
+    inputs = inference_inputs(model, experiment.model)
     skipped: dict[str, dict] = {}  # corruption -> its levels that do not apply, and why
     for case in cases:
         reason = not_applicable(case, inputs)
@@ -123,19 +118,16 @@ def run_robustness(
             skipped[case.corruption]["levels"].append(case.severity)
     cases = [CLEAN, *(c for c in cases if c.corruption not in skipped)]  # a corruption applies at every level or none
     origins = dataset_ray_origins(clean_data) if rayiou and clean_data.space.rayiou else None
-    root = Path(config.root).resolve()
-    common = {"checkpoint_sha256": _sha256(Path(checkpoint)), "data": str(root), "version": config.version,
-              "tables": tables_key(root, config.version, 0), "split": config.split, "frames": len(clean_data),
-              "seed": seed, "rayiou": origins is not None, "occkit": __version__}  # fmt: skip
+    context = cache_context(checkpoint, clean_data, seed, origins is not None)
 
     results: dict[Case, dict] = {}
     todo = []
     for case in cases:
-        fingerprint = _fingerprint(common, case)
-        cached = _read_cached(cases_folder / f"{case.key}.json", fingerprint)
+        fingerprint = case_fingerprint(context, case)
+        cached = read_cached(case_path(cases_folder, case), fingerprint)
         if cached is not None:
-            results[case] = {**cached["result"], "cached": True}
-            log(f"{case.label}: {_scores(cached['result'])} (cached, {cached['result']['seconds']:.0f} s before)")
+            results[case] = {**cached, "cached": True}
+            log(f"{case.label}: {_scores(cached)} (cached, {cached['seconds']:.0f} s before)")
         else:
             todo.append((case, fingerprint))
     for reason in dict.fromkeys(item["reason"] for item in skipped.values()):
@@ -156,8 +148,7 @@ def run_robustness(
         scores = evaluate_model(model, dataset, 1, workers, ray_origins=origins, progress=step)
         result = {key: scores[key] for key in (*METRICS, "per_class_iou", "frames") if key in scores}
         result["seconds"] = time.perf_counter() - begin
-        atomic_write_text(json.dumps({"fingerprint": fingerprint, "result": result}, indent=2) + "\n",
-                          cases_folder / f"{case.key}.json")  # fmt: skip
+        write_case(case_path(cases_folder, case), fingerprint, result)
         results[case] = {**result, "cached": False}
         log(f"{case.label}: {_scores(result)} ({result['seconds']:.0f} s)")
 

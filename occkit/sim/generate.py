@@ -20,6 +20,7 @@ from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 from occkit.nuscenes import LIDARSEG_TABLE, TABLE_NAMES
+from occkit.outputs import OutputLock, check_replaceable, publish_folder, staging_folder
 from occkit.sim.config import SimConfig, scene_name
 from occkit.sim.scene import simulate_scene
 
@@ -31,34 +32,16 @@ __all__ = [
     "DATASET_MARKER",
 ]
 
-#: What ``occkit sim`` writes at the top of a dataset besides its table folder (``<version>/``) and what readers
-#: add (``.occkit/``, the index cache): ``--overwrite`` replaces a folder holding these and nothing else.
-_DATASET_ENTRIES = frozenset({"annotations.json", "gts", "lidarseg", "maps", "samples", "sweeps", "splits.json",
-                              "sim_config.yaml", "surroundocc", ".occkit"})  # fmt: skip
-#: The file that marks a folder as written by ``occkit sim``.
+#: The file that marks a folder as written by ``occkit sim`` (also by an older occkit, which wrote no manifest).
 DATASET_MARKER = "sim_config.yaml"
-
-
-def _check_replaceable(out: Path) -> None:
-    """Refuse to replace ``out`` unless it is a dataset ``occkit sim`` wrote, holding nothing else."""
-    import yaml
-
-    marker = out / DATASET_MARKER
-    try:
-        version = (yaml.safe_load(marker.read_text()) or {}).get("version")
-    except (OSError, yaml.YAMLError, AttributeError):
-        raise FileExistsError(f"--overwrite refused: {out} is not a dataset written by occkit sim (no readable "
-                              f"{DATASET_MARKER}); nothing was deleted") from None  # fmt: skip
-    foreign = sorted(entry.name for entry in out.iterdir() if entry.name not in _DATASET_ENTRIES | {version})
-    if foreign:
-        shown = ", ".join(foreign[:5]) + (f" and {len(foreign) - 5} more" if len(foreign) > 5 else "")
-        raise FileExistsError(f"--overwrite refused: {out} holds entries occkit sim did not write ({shown}); move "
-                              "them away or choose another folder; nothing was deleted")
+#: The command named in the output folder's lock and manifest.
+COMMAND = "occkit sim"
 
 
 def check_output(out: Path, overwrite: bool) -> None:
     """Refuse an ``out`` that :func:`simulate_dataset` may not write (before any work): a file, the current folder,
-    a folder with content without ``overwrite``, or with ``overwrite`` anything but a dataset it wrote."""
+    a folder with content without ``overwrite``, or with ``overwrite`` anything but a dataset it wrote holding
+    nothing else (:func:`occkit.outputs.check_replaceable`: every file, nested ones too, listed in its manifest)."""
     if out.exists() and not out.is_dir():
         raise FileExistsError(f"{out} exists and is not a directory")
     here = Path.cwd().resolve()
@@ -68,12 +51,14 @@ def check_output(out: Path, overwrite: bool) -> None:
     if out.exists() and any(out.iterdir()):
         if not overwrite:
             raise FileExistsError(f"{out} exists and is not empty; pass --overwrite to replace it")
-        _check_replaceable(out)
+        check_replaceable(out, COMMAND, DATASET_MARKER)
 
 
 def _prepare_output(out: Path, overwrite: bool) -> Path:
+    """Check ``out`` and make an empty staging folder beside it; the caller holds the folder's lock, so a staging
+    folder already there was left by a run that died."""
     check_output(out, overwrite)
-    staging = out.parent / f".{out.name}.partial"
+    staging = staging_folder(out)
     if staging.exists():
         shutil.rmtree(staging)
     staging.mkdir(parents=True)
@@ -92,19 +77,6 @@ def estimate_resources(config: SimConfig) -> dict[str, float]:
     return {"disk": config.scenes * config.frames * per_frame, "memory_per_worker": 1.2e9 + 250 * pixels}
 
 
-def _publish(staging: Path, out: Path) -> None:
-    """Move the finished dataset into place; an existing one is replaced only after the new one is complete."""
-    if out.exists():
-        retired = out.parent / f".{out.name}.old"
-        if retired.exists():
-            shutil.rmtree(retired)
-        out.rename(retired)
-        staging.rename(out)
-        shutil.rmtree(retired)
-    else:
-        staging.rename(out)
-
-
 def simulate_dataset(
     config: SimConfig,
     out: str | Path,
@@ -114,13 +86,20 @@ def simulate_dataset(
 ) -> dict:
     """Simulate ``config.scenes`` scenes and write them under ``out``; returns a summary dict.
 
-    ``progress`` is called with the number of key frames finished since the last call.
+    ``progress`` is called with the number of key frames finished since the last call. The run holds the lock of
+    ``out`` (:class:`occkit.outputs.OutputLock`): a second run into the same folder is refused before any work.
     """
-    from occkit.sim.writer import static_tables, write_json
-
     out = Path(out)
     if workers < 1:
         raise ValueError(f"workers must be >= 1, got {workers}")
+    with OutputLock(out, COMMAND):
+        return _simulate_locked(config, out, workers, overwrite, progress)
+
+
+def _simulate_locked(config: SimConfig, out: Path, workers: int, overwrite: bool,
+                     progress: Callable[[int], None] | None) -> dict:  # fmt: skip
+    from occkit.sim.writer import static_tables, write_json
+
     staging = _prepare_output(out, overwrite)
     try:
         tables: dict[str, list[dict]] = {name: [] for name in (*TABLE_NAMES, LIDARSEG_TABLE)}
@@ -144,8 +123,8 @@ def simulate_dataset(
         write_json(
             staging / "splits.json", {"train": [scene_name(i) for i in train], "val": [scene_name(i) for i in val]}
         )
-        _write_config(staging / "sim_config.yaml", config)
-        _publish(staging, out)
+        _write_config(staging / DATASET_MARKER, config)
+        publish_folder(staging, out, COMMAND, DATASET_MARKER)
     except BaseException:
         shutil.rmtree(staging, ignore_errors=True)
         raise

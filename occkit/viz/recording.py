@@ -385,11 +385,11 @@ class ViewConfig:
     data: str
     """Dataset root (nuScenes layout, labels in the label space's layout)."""
     split: str = "val"
-    """Scene split the scene belongs to."""
+    """Split whose first scene is shown when ``scene`` is None (a named scene is found in any split)."""
     version: str = "v1.0-synth"
     """Table folder under ``data``."""
     scene: str | None = None
-    """Scene name; None: the split's first scene."""
+    """Scene name, found in whichever split holds it (names are unique); None: the first scene of ``split``."""
     frames: int | None = None
     """Record the scene's first ``frames`` key frames; None: all."""
     pred: str | None = None
@@ -466,8 +466,8 @@ def open_scene(config: ViewConfig) -> Scene:
 
     Raises:
         FileNotFoundError: missing data root, prediction folder, prediction file or checkpoint.
-        ValueError: unknown split or scene (the message lists the split's scenes), a checkpoint of another label
-            space than ``config.label_space``.
+        ValueError: unknown split, a scene in no split (the message lists some of the data's scenes), a checkpoint
+            of another label space than ``config.label_space``.
     """
     root = Path(config.data)
     if not root.is_dir():
@@ -483,13 +483,17 @@ def open_scene(config: ViewConfig) -> Scene:
         space = label_space(experiment.data.label_space)
         if config.label_space is not None and config.label_space != space.name:
             raise ValueError(f"checkpoint {config.ckpt} predicts {space.name} labels, not {config.label_space}")
+    # A scene name is unique across the splits: a named scene is looked up in all of them ("all"), so that it needs
+    # no --split, and the split only picks the default scene.
+    if config.scene is not None:
+        config = dataclasses.replace(config, split="all")
     common = {"root": str(root), "version": config.version, "split": config.split, "label_space": space.name}
     listing = OccupancyDataset(DatasetConfig(**common, cameras=(), sweeps=-1, occupancy=False, boxes=False))
     scenes = {listing.records[indices[0]].scene: indices for indices in listing.scene_indices()}
     name = config.scene if config.scene is not None else next(iter(scenes))
     if name not in scenes:
-        raise ValueError(f"{root}: split {config.split!r} has no scene {name!r}; its scenes: "
-                         f"{_name_list(list(scenes))}")  # fmt: skip
+        raise ValueError(f"{root}: no scene {name!r} in {config.version} (in no split); its scenes: "
+                         f"{_name_list(sorted(scenes), limit=8)}")  # fmt: skip
     indices = tuple(scenes[name][: config.frames])
     records = [listing.records[i] for i in indices]
     cameras = tuple(camera for camera in CAMERAS if camera in records[0].cameras)
