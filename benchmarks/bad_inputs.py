@@ -405,8 +405,8 @@ def zip_bomb(path: Path, member: str, size: int, header: bytes = b"", mode: str 
             stream.write(chunk)
 
 
-def torch_zip_bomb(path: Path) -> None:
-    """A torch checkpoint whose one tensor record inflates to 2 GiB (a 2 MB file)."""
+def torch_zip_bomb(path: Path, size: int = 1 << 31) -> None:
+    """A torch checkpoint whose one tensor record inflates to ``size`` bytes (2 GiB: a 2 MB file)."""
     import zipfile
 
     import torch
@@ -419,18 +419,23 @@ def torch_zip_bomb(path: Path) -> None:
         for name, data in entries.items():
             if name != record:
                 archive.writestr(name, data)
-    zip_bomb(path, record, 1 << 31, mode="a")
+    zip_bomb(path, record, size, mode="a")
 
 
-def npz_bomb(path: Path) -> None:
-    """An Occ3D prediction whose ``semantics.npy`` header declares (200, 200, 40000) uint8: 1.6 GB from 1.5 MB."""
+def npy_header(shape: tuple[int, ...], dtype: str = "|u1") -> bytes:
+    """The header of a ``.npy`` file declaring an array of ``shape`` and ``dtype`` (its data may be anything)."""
     import io
 
     import numpy as np
 
     header = io.BytesIO()
-    np.lib.format.write_array_header_1_0(header, {"descr": "|u1", "fortran_order": False, "shape": (200, 200, 40000)})
-    zip_bomb(path, "semantics.npy", 1 << 27, header.getvalue())
+    np.lib.format.write_array_header_1_0(header, {"descr": dtype, "fortran_order": False, "shape": shape})
+    return header.getvalue()
+
+
+def npz_bomb(path: Path) -> None:
+    """An Occ3D prediction whose ``semantics.npy`` header declares (200, 200, 40000) uint8: 1.6 GB from 1.5 MB."""
+    zip_bomb(path, "semantics.npy", 1 << 27, npy_header((200, 200, 40000)))
 
 
 

@@ -3,7 +3,11 @@
 from __future__ import annotations
 
 import contextlib
+import functools
+import importlib.util
 import math
+import sys
+from pathlib import Path
 
 import pytest
 import torch
@@ -152,3 +156,15 @@ def torch_threads(count: int):
 def synthetic_batch():
     """Factory: ``synthetic_batch(**kwargs)`` -> :func:`make_batch`."""
     return make_batch
+
+
+@functools.cache
+def crafting():
+    """``benchmarks/bad_inputs.py``: the one home of the crafted files of the bad-input tests (archive bombs, a pickle
+    that calls ``os.system``, ``.npy`` headers) and of its reading of a command's error lines."""
+    path = Path(__file__).resolve().parents[1] / "benchmarks" / "bad_inputs.py"
+    spec = importlib.util.spec_from_file_location("benchmarks_bad_inputs", path)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # dataclasses look their module up while the file runs
+    spec.loader.exec_module(module)
+    return module

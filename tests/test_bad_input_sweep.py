@@ -8,15 +8,14 @@ processes with crafted datasets. Here they run in-process through :func:`occkit.
 
 from __future__ import annotations
 
-import functools
 import socket
-import sys
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
+from conftest import crafting
 
 from occkit.cli import COMMANDS, main
 
@@ -29,19 +28,6 @@ class Bad:
     needle: str
 
 
-@functools.cache
-def _crafting():
-    """The crafted-file makers of ``benchmarks/bad_inputs.py`` (one home for the bombs and the refused pickle)."""
-    import importlib.util
-
-    path = Path(__file__).resolve().parents[1] / "benchmarks" / "bad_inputs.py"
-    spec = importlib.util.spec_from_file_location("benchmarks_bad_inputs", path)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses look their module up while the file runs
-    spec.loader.exec_module(module)
-    return module
-
-
 @pytest.fixture(scope="module")
 def work(tmp_path_factory) -> Path:
     """The files of the sweep: a user's folder, random bytes, a refused pickle, NaN weights and two archive bombs."""
@@ -49,13 +35,13 @@ def work(tmp_path_factory) -> Path:
     (work / "user").mkdir()
     (work / "user" / "thesis.tex").write_text("mine\n")
     (work / "a-file.txt").write_text("a file\n")
-    crafting = _crafting()
+    files = crafting()
     (work / "random.pt").write_bytes(np.random.default_rng(0).bytes(4096))
-    torch.save({"state_dict": {"weight": torch.zeros(2)}, "meta": crafting.System()}, work / "system.pt")
+    torch.save({"state_dict": {"weight": torch.zeros(2)}, "meta": files.System()}, work / "system.pt")
     torch.save({"state_dict": {"img_backbone.conv1.weight": torch.full((4, 3, 3, 3), float("nan"))}}, work / "nan.pt")
-    crafting.torch_zip_bomb(work / "bomb.pt")
+    files.torch_zip_bomb(work / "bomb.pt")
     (work / "preds").mkdir()
-    crafting.npz_bomb(work / "preds" / ("0" * 32 + ".npz"))
+    files.npz_bomb(work / "preds" / ("0" * 32 + ".npz"))
     labels = work / "gt" / "scene-0000" / ("0" * 32)
     labels.mkdir(parents=True)
     np.savez(labels / "labels.npz", semantics=np.zeros((200, 200, 16), np.uint8),
@@ -124,7 +110,7 @@ def test_a_bad_input_is_one_line_and_exit_code_2(case, work, capsys, monkeypatch
     except SystemExit as exited:  # argparse's own refusals
         code = exited.code
     err = capsys.readouterr().err
-    lines = [line for line in _crafting().error_lines(err) if not line.startswith("warning:")]  # no progress bars
+    lines = [line for line in crafting().error_lines(err) if not line.startswith("warning:")]  # no progress bars
     assert code == 2, err
     assert len(lines) == 1 and "Traceback" not in err and "internal error" not in err, err
     assert case.needle.format(work=work) in lines[0], lines[0]
@@ -176,6 +162,6 @@ def test_crafted_archives_cost_no_more_than_their_size(work):
     for argv in (["convert", str(work / "bomb.pt"), "--model", "flashocc_tiny", "--out", str(work / "b.safetensors")],
                  ["eval-preds", "--gt", str(work / "gt"), "--preds", str(work / "preds"), "--out", str(work / "ep")]):
         code, rise_mb, err = _exit_code_and_peak_rise_mb(argv)
-        lines = _crafting().error_lines(err)
+        lines = crafting().error_lines(err)
         assert code == 2 and len(lines) == 1 and ": error: " in lines[0], err
         assert rise_mb < 300, (argv[0], rise_mb)

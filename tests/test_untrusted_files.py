@@ -9,7 +9,6 @@ it in fresh processes); these tests show the refusal comes from the declarations
 
 from __future__ import annotations
 
-import io
 import os
 import struct
 import zipfile
@@ -18,6 +17,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from conftest import crafting
 
 from occkit import zoo
 from occkit.archives import TORCH_SIZE_SLACK, NpzArchive, check_torch_file
@@ -31,29 +31,6 @@ from occkit.weight_files import load_torch_file
 
 SMALL = VoxelGrid((-1.6, -1.6, -0.4, 1.6, 1.6, 0.4), 0.4)  # 8 x 8 x 2
 TOKEN = "0" * 32
-
-
-class _System:
-    """Unpickles as a call of ``os.system``: what a malicious checkpoint holds."""
-
-    def __reduce__(self):
-        return os.system, ("true",)
-
-
-def _deflated(path: Path, member: str, size: int, header: bytes = b"", mode: str = "w") -> None:
-    """Add ``member`` to the zip at ``path``: ``header`` then zeros up to ``size`` bytes, deflated (about 1000:1)."""
-    with (zipfile.ZipFile(path, mode, compression=zipfile.ZIP_DEFLATED) as archive,
-          archive.open(member, "w", force_zip64=True) as out):  # fmt: skip
-        out.write(header)
-        chunk = bytes(1 << 22)
-        for _ in range(size // len(chunk)):
-            out.write(chunk)
-
-
-def _npy_header(shape: tuple[int, ...], dtype: str = "|u1") -> bytes:
-    stream = io.BytesIO()
-    np.lib.format.write_array_header_1_0(stream, {"descr": dtype, "fortran_order": False, "shape": shape})
-    return stream.getvalue()
 
 
 def _one_error_line(argv: list[str], capsys) -> str:
@@ -70,15 +47,7 @@ def _one_error_line(argv: list[str], capsys) -> str:
 def torch_bomb(tmp_path) -> Path:
     """torch's zip format with its tensor record replaced by 256 MB of deflated zeros (a file of about 256 KB)."""
     path = tmp_path / "bomb.pt"
-    torch.save({"weight": torch.zeros(4)}, path)
-    with zipfile.ZipFile(path) as original:
-        entries = {info.filename: original.read(info) for info in original.infolist()}
-    record = next(name for name in entries if name.endswith("data/0"))
-    with zipfile.ZipFile(path, "w") as archive:
-        for name, data in entries.items():
-            if name != record:
-                archive.writestr(name, data)
-    _deflated(path, record, 256 << 20, mode="a")
+    crafting().torch_zip_bomb(path, 256 << 20)
     assert path.stat().st_size < 2 << 20
     return path
 
@@ -159,7 +128,7 @@ def test_tensors_that_are_not_plain_saved_data_are_refused(tmp_path, tensor, pro
 # ----------------------------------------------------------------------------------------------------- U1: pickles
 def test_a_refused_pickle_names_the_global_and_not_torchs_advice(tmp_path, capsys):
     path = tmp_path / "system.pt"
-    torch.save({"state_dict": {"w": torch.zeros(2)}, "meta": _System()}, path)
+    torch.save({"state_dict": {"w": torch.zeros(2)}, "meta": crafting().System()}, path)
     with pytest.raises(ValueError) as refused:
         load_torch_file(path)
     message = str(refused.value)
@@ -256,17 +225,17 @@ def test_an_npz_member_declaring_a_larger_array_is_refused_before_its_data(tmp_p
     path = tmp_path / "labels.npz"
     masks = {key: np.zeros(SMALL.shape, np.uint8) for key in ("mask_lidar", "mask_camera")}
     np.savez(path, **masks)
-    _deflated(path, "semantics.npy", 40 << 20, _npy_header((8, 8, 600_000)), mode="a")
+    crafting().zip_bomb(path, "semantics.npy", 40 << 20, crafting().npy_header((8, 8, 600_000)), mode="a")
     refused = r"sample t: .*labels\.npz: semantics has shape \(8, 8, 600000\) but expected \(8, 8, 2\)"
     with pytest.raises(LabelError, match=refused):
         read_occ3d_labels(path, "t", SMALL)
     np.savez(path, **masks)
     with zipfile.ZipFile(path, "a") as archive:
-        archive.writestr("semantics.npy", _npy_header((8, 8, 600_000)) + bytes(10))
+        archive.writestr("semantics.npy", crafting().npy_header((8, 8, 600_000)) + bytes(10))
     with pytest.raises(LabelError, match=refused):
         read_occ3d_labels(path, "t", SMALL)
     with zipfile.ZipFile(path, "w") as archive:
-        archive.writestr("semantics.npy", _npy_header(SMALL.shape) + bytes(10))
+        archive.writestr("semantics.npy", crafting().npy_header(SMALL.shape) + bytes(10))
     with NpzArchive(path, "labels") as archive, pytest.raises(ValueError, match="holds 10 B: the file is truncated"):
         archive.read("semantics")
     np.savez(path, semantics=np.array([{"a": 1}], dtype=object), **masks)  # numpy pickles object arrays
@@ -279,16 +248,16 @@ def test_only_the_arrays_asked_for_are_read(tmp_path):
     path = tmp_path / f"{TOKEN}.npz"
     np.savez(path, semantics=np.ones((200, 200, 16), np.uint8))
     with zipfile.ZipFile(path, "a") as archive:
-        archive.writestr("junk.npy", _npy_header((100_000, 1_000_000)))
+        archive.writestr("junk.npy", crafting().npy_header((100_000, 1_000_000)))
     assert read_prediction(path).sum() == 200 * 200 * 16
 
 
 def test_surroundocc_rows_beyond_the_grid_are_refused_from_the_header(tmp_path):
     path = tmp_path / "rows.npy"
-    path.write_bytes(_npy_header((10**9, 4), "<i8"))  # 32 GB declared in 128 bytes
+    path.write_bytes(crafting().npy_header((10**9, 4), "<i8"))  # 32 GB declared in 128 bytes
     with pytest.raises(LabelError, match=r"sample s: .*rows\.npy: declares 1000000000 rows, more than the 128 voxels"):
         read_surroundocc_labels(path, "s", SMALL)
-    path.write_bytes(_npy_header((100, 4), "<i8") + bytes(80))
+    path.write_bytes(crafting().npy_header((100, 4), "<i8") + bytes(80))
     with pytest.raises(LabelError, match=r"holds 80 B: the file is truncated or forged"):
         read_surroundocc_labels(path, "s", SMALL)
     path.write_text("0 0 0 1\n")
@@ -313,7 +282,7 @@ def eval_tree(tmp_path) -> dict[str, Path]:
 def test_eval_preds_refuses_a_prediction_bomb_in_one_line(eval_tree, capsys):
     bomb = eval_tree["preds"] / f"{TOKEN}.npz"
     bomb.unlink()
-    _deflated(bomb, "semantics.npy", 16 << 20, _npy_header((200, 200, 40_000)))
+    crafting().zip_bomb(bomb, "semantics.npy", 16 << 20, crafting().npy_header((200, 200, 40_000)))
     with pytest.raises(ValueError, match=rf"{bomb.name}: semantics has shape \(200, 200, 40000\) but occ3d"):
         evaluate_predictions(eval_tree["gts"], eval_tree["preds"])
     line = _one_error_line(["eval-preds", "--gt", str(eval_tree["gts"]), "--preds", str(eval_tree["preds"]),
