@@ -180,8 +180,8 @@ def build_cases(work: Path) -> list[Case]:
                       str(preds), "--workers", "0"], contains=("escape_tok",),
                       check=_no_file_named(work / "out", "escape_tok")))  # fmt: skip
     cases.append(Case("token ../../escape_tok, index", ["index", "--root", str(escape), "--version", VERSION, "--out",
-                      str(work / "out" / "escape.json")], contains=("escape_tok",),
-                      check=_absent(work / "out" / "escape.json")))  # fmt: skip
+                      str(work / "out" / "escape.npz")], contains=("escape_tok",),
+                      check=_absent(work / "out" / "escape.npz")))  # fmt: skip
     absolute = crafted("absolute-token")
     target = work / "out" / "absolute_tok"
     _rename_token(absolute, token, str(target))
@@ -215,7 +215,7 @@ def build_cases(work: Path) -> list[Case]:
     # --- the index cache and the tables
     stale = crafted("stale-cache")
     subprocess.run([sys.executable, "-m", "occkit", "index", "--root", str(stale), "--version", VERSION, "--out",
-                    str(work / "out" / "stale-index.json")], capture_output=True, check=True)  # fmt: skip
+                    str(work / "out" / "stale-index.npz")], capture_output=True, check=True)  # fmt: skip
     _occkit(eval_args(stale, "eval-stale-first"), work)  # builds the dataset's own cache
     old = (stale / VERSION / "scene.json").stat().st_mtime - 3600
     scenes = _tables(stale)["scene"]

@@ -86,19 +86,10 @@ def _add_sim(parser: argparse.ArgumentParser) -> None:
 
 
 def _run_sim(args: argparse.Namespace) -> int:
-    from tqdm import tqdm
-
     from occkit.config import apply_overrides
-    from occkit.outputs import OutputLock, check_not_inside
-    from occkit.sim.generate import COMMAND, SimConfig, check_output, estimate_resources, simulate_dataset
+    from occkit.sim.config import SimConfig
 
     output_folder(args.out, "--out")
-    check_output(args.out, args.overwrite)
-    for option, path in (("--preview", args.preview), ("--json", args.json)):
-        if path is not None:
-            output_file(path, option)
-            check_not_inside(path, args.out, option)  # the dataset is renamed into place over --out
-
     options = {
         "scenes": args.scenes,
         "frames": args.frames,
@@ -109,7 +100,20 @@ def _run_sim(args: argparse.Namespace) -> int:
     }
     if args.cameras:
         options["cameras"] = tuple(args.cameras)
+    # The settings first, before the simulator's heavy imports: a value out of its bounds is refused at once.
     config = apply_overrides(SimConfig(**options), args.overrides)
+
+    from tqdm import tqdm
+
+    from occkit.outputs import OutputLock, check_not_inside
+    from occkit.sim.generate import COMMAND, check_output, estimate_resources, simulate_dataset
+
+    check_output(args.out, args.overwrite)
+    for option, path in (("--preview", args.preview), ("--json", args.json)):
+        if path is not None:
+            output_file(path, option)
+            check_not_inside(path, args.out, option)  # the dataset is renamed into place over --out
+
     needs = estimate_resources(config)
     workers = min(args.workers, config.scenes)
     check_memory(workers * needs["memory_per_worker"], f"simulating {workers} scene(s) at once at "

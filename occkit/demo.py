@@ -47,13 +47,31 @@ def _say(text: str) -> None:
 
 def _ensure_world(data: Path) -> None:
     if data.exists():
-        _say(f"using the synthetic world in {data}")
+        differs = _differs_from_demo_world(data)
+        _say(f"using the synthetic world in {data}" + (f" (not the demo's world: {differs}; the scores are not the "
+                                                       "ones docs/training.md gives)" if differs else ""))
         return
     config = SimConfig(**DEMO_WORLD)
     _say(f"writing a synthetic world to {data}: {config.scenes} scenes x {config.frames} key frames, six cameras, "
          "LiDAR, boxes, Occ3D labels")  # fmt: skip
     with tqdm(total=config.scenes * config.frames, unit="frame", desc="sim") as bar:
         simulate_dataset(config, data, workers=2, progress=bar.update)
+
+
+def _differs_from_demo_world(data: Path) -> str:
+    """How the world in ``data`` differs from :data:`DEMO_WORLD`, from its ``sim_config.yaml`` ("" when it is the
+    demo's; a folder without one is another dataset)."""
+    from occkit.config import load_config
+    from occkit.sim.generate import DATASET_MARKER
+
+    try:
+        config = load_config(SimConfig, data / DATASET_MARKER)
+    except ValueError:  # absent or unreadable: not a world occkit sim wrote
+        return f"{data} holds no readable {DATASET_MARKER}"
+    expected = SimConfig(**DEMO_WORLD)
+    changed = [f"{f.name} {getattr(config, f.name)!r} instead of {getattr(expected, f.name)!r}"
+               for f in dataclasses.fields(SimConfig) if getattr(config, f.name) != getattr(expected, f.name)]
+    return ", ".join(changed[:3]) + (f" and {len(changed) - 3} more" if len(changed) > 3 else "")
 
 
 def _baseline(dataset) -> dict:

@@ -85,3 +85,18 @@ def test_max_sweeps_has_a_cache_of_its_own(data):
     assert any(len(r.sweeps) > 0 for r in _records(data, sweeps=2))
     assert {path.name for path in (data / ".occkit").iterdir()} >= {f"occkit-index-{VERSION}-0.npz",
                                                                      f"occkit-index-{VERSION}-2.npz"}
+
+
+def test_the_demo_says_when_the_world_it_reuses_is_not_its_own(tmp_path):
+    """The demo reuses the world in --data: a world of other settings is named, never taken silently as its own."""
+    from occkit.config import save_config
+    from occkit.demo import DEMO_WORLD, _differs_from_demo_world
+    from occkit.sim.config import SimConfig
+    from occkit.sim.generate import DATASET_MARKER
+
+    save_config(SimConfig(**DEMO_WORLD), tmp_path / DATASET_MARKER)
+    assert _differs_from_demo_world(tmp_path) == ""
+    save_config(SimConfig(**{**DEMO_WORLD, "scenes": 2, "seed": 0}), tmp_path / DATASET_MARKER)
+    assert _differs_from_demo_world(tmp_path) == "scenes 2 instead of 10, seed 0 instead of 1"
+    (tmp_path / DATASET_MARKER).unlink()
+    assert _differs_from_demo_world(tmp_path) == f"{tmp_path} holds no readable {DATASET_MARKER}"

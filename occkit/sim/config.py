@@ -10,7 +10,6 @@ from dataclasses import dataclass, field
 
 from occkit.config import check_ranges
 from occkit.nuscenes import CAMERAS
-from occkit.sim.rig import camera_rig
 
 __all__ = [
     "SimConfig",
@@ -141,6 +140,8 @@ def camera_time_offsets_us(cameras: tuple[str, ...]) -> dict[str, int]:
     LIDAR_TOP starts each revolution pointing backwards and turns clockwise seen from above, so it reaches the
     front camera a quarter turn in (nuScenes' cameras lag the LiDAR timestamp by 0..50 ms the same way).
     """
+    from occkit.sim.rig import camera_rig  # torch: not needed to read or check a config
+
     rig = {camera.name: camera for camera in camera_rig(64, 36)}
     offsets = {}
     for name in cameras:
