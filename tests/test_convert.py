@@ -22,10 +22,12 @@ FlashOcc (Yzichen/FlashOCC, model ``BEVDetOCC``, configs ``projects/configs/flas
 * ``occ_head``: ``dense_heads/bev_occ_head.py`` ``BEVOCCHead2D`` (M0 in 128, out 128, Dz 16, 18 classes):
   ``final_conv.conv`` (ConvModule with bias, no norm), ``predicter.{0,2}`` (Linear 128 -> 256 -> 16 x 18).
 
-BEVDet's detection model (what FlashOcc's configs ``load_from``) has the same image and BEV parts (its FPN_LSS
-outputs 256, as FlashOcc's M1 config) plus ``pts_bbox_head``, mmdet3d's ``CenterHead``
-(``mmdet3d/models/dense_heads/centerpoint_head.py``): ``shared_conv.{conv,bn}`` and per task ``task_heads.T.<head>.0``
-a ConvModule (``conv``, ``bn``) and ``<head>.1`` the output conv; heads and tasks as DAOcc's config below.
+BEVDet's detection model ``bevdet-r50-cbgs`` (what FlashOcc's configs ``load_from``; HuangJunJie2017/BEVDet,
+``configs/bevdet/bevdet-r50-cbgs.py``) has the same modules with other sizes: ``grid_config['depth']`` [1, 60, 1],
+so 59 depth bins and a ``depth_net`` of 59 + 64 = 123 outputs; its FPN_LSS outputs 256 (as FlashOcc's M1); and
+``pts_bbox_head``, mmdet3d's ``CenterHead`` (``mmdet3d/models/dense_heads/centerpoint_head.py``) with one task of
+all ten classes: ``shared_conv.{conv,bn}`` and per task ``task_heads.T.<head>.0`` a ConvModule (``conv``, ``bn``)
+and ``<head>.1`` the output conv, common heads as DAOcc's below.
 
 DAOcc (AlphaPlusTT/DAOcc, config ``configs/nuscenes/occ3d/daocc_occ3d_nus_w_mask.yaml``, model ``BEVFusion`` in
 ``mmdet3d/models/fusion_models/bevfusion.py``):
@@ -149,11 +151,11 @@ def _fpn_lss(state: dict, prefix: str, in_channels: int, out_channels: int, extr
         state[f"{prefix}up2.4.bias"] = _t(out_channels)
 
 
-def _center_head(state: dict, prefix: str, in_channels: int) -> None:
-    """mmdet3d's CenterHead with DAOcc's (and BEVDet's) six tasks and common heads."""
+def _center_head(state: dict, prefix: str, in_channels: int, tasks: tuple[int, ...] = (1, 2, 2, 1, 2, 2)) -> None:
+    """mmdet3d's CenterHead with the common heads of DAOcc and BEVDet; ``tasks``, the classes per task, are
+    DAOcc's six by default (BEVDet's bevdet-r50-cbgs has one task of ten)."""
     state[f"{prefix}shared_conv.conv.weight"] = _w(64, in_channels, 3, 3)
     _bn(state, f"{prefix}shared_conv.bn", 64)
-    tasks = (1, 2, 2, 1, 2, 2)  # classes per task
     for t, classes in enumerate(tasks):
         for head, out in (("reg", 2), ("height", 1), ("dim", 3), ("rot", 2), ("vel", 2), ("heatmap", classes)):
             branch = f"{prefix}task_heads.{t}.{head}"
@@ -195,9 +197,10 @@ def flashocc_state(depth_bins: int = 44, bev_out: int = 128, occ_head: bool = Tr
 
 
 def bevdet_detection_state() -> dict:
-    """BEVDet's detection model: FlashOcc's image and BEV parts (FPN_LSS to 256, as M1), a CenterHead, no occ_head."""
-    state = flashocc_state(depth_bins=88, bev_out=256, occ_head=False)
-    _center_head(state, "pts_bbox_head.", 256)
+    """``bevdet-r50-cbgs``: FlashOcc's image and BEV modules with 59 depth bins and FPN_LSS to 256, a CenterHead of
+    one ten-class task, no occ_head."""
+    state = flashocc_state(depth_bins=59, bev_out=256, occ_head=False)
+    _center_head(state, "pts_bbox_head.", 256, tasks=(10,))
     return state
 
 
@@ -492,14 +495,19 @@ def test_non_strict_returns_the_part_of_bevdets_detection_checkpoint_that_fits()
     conversion = convert_state_dict(state, "flashocc_m0", strict=False)
     assert not conversion.complete
     head = [k for k in state if k.startswith("pts_bbox_head.")]
-    # shared_conv (conv + 5 BatchNorm tensors), then 6 tasks x 6 heads x (conv + 5 BatchNorm + output weight, bias).
-    assert len(head) == 6 + 6 * 6 * 8 and all(conversion.dropped[k].startswith("BEVDet's detection head") for k in head)
+    # shared_conv (conv + 5 BatchNorm tensors), then 1 task x 6 heads x (conv + 5 BatchNorm + output weight, bias).
+    assert len(head) == 6 + 1 * 6 * 8 and all(conversion.dropped[k].startswith("BEVDet's detection head") for k in head)
     assert "BEVDet detection" in conversion.source_description
-    # M1-sized depth net (88 bins) and FPN_LSS (256 out) do not fit M0; the image and BEV backbones do.
+    # BEVDet's depth net (59 bins: 123 outputs) and FPN_LSS (256 out) do not fit M0; the image and BEV backbones do.
     mismatched = {m.reference_key for m in conversion.shape_mismatches}
     assert "img_view_transformer.depth_net.weight" in mismatched and "img_bev_encoder_neck.up2.1.weight" in mismatched
     assert "image_encoder.backbone.stages.3.2.conv3.weight" in conversion.state
     assert "bev_encoder.backbone.stages.2.1.conv2.weight" in conversion.state
+    assert len(conversion.state) == 405  # docs/reproducing.md
+    # M1's BEV neck is BEVDet's width: only the depth net (88 bins against 59) and the heads stay out.
+    m1 = convert_state_dict(state, "flashocc_m1", strict=False)
+    assert {m.reference_key.rsplit(".", 2)[0] for m in m1.shape_mismatches} == {"img_view_transformer"}
+    assert len(m1.state) == 422
     head_keys = {k for k in zoo.build("flashocc_m0").state_dict() if k.startswith("occupancy_head.")}
     assert set(conversion.missing) == head_keys
     report = conversion.report()
@@ -517,7 +525,7 @@ def test_load_partial_starts_flashocc_from_bevdet(tmp_path):
     assert torch.equal(model.occupancy_head.predictor[0].weight, before)
     text = str(loaded)
     assert f"{loaded.loaded} of the model's" in text and "BEVDet's detection head" in text
-    assert "img_view_transformer.depth_net.weight (152, 256, 1, 1)" in text
+    assert "img_view_transformer.depth_net.weight (123, 256, 1, 1)" in text
     with pytest.raises(ConfigError, match=r"but the model is a daocc model: it fits the flashocc entries"):
         load_partial(zoo.build("daocc_tiny"), path)
 
