@@ -3,7 +3,7 @@
 Three arms train for the same number of optimizer steps (batch 1), from the same seed, on the same synthetic world:
 
 * ``da_occ_tiny``, the single-frame model, on shuffled frames (its zoo recipe);
-* ``da_occ_tiny_temporal``, the same model plus da_occ_16f's recurrent BEV history, trained on streams of each
+* ``da_occ_tiny_temporal``, the same model plus da_occ_16f_recurrent's BEV history, trained on streams of each
   scene's frames in time order with its memory carried from step to step (its zoo recipe);
 * ``da_occ_tiny (streams)``, the single-frame model trained in the temporal model's order (``train.sampler:
   streams``): the control that tells the history's effect from the effect of the order, since consecutive frames

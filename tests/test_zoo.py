@@ -44,7 +44,9 @@ STEPPED_ELSEWHERE = {
     "da_occ_no_dac": "every DAC switched off: test_da_occ",
     "da_occ_dac_height_only": "the BEV DACs switched off: test_da_occ",
     "da_occ_1f": "the concatenated history: test_temporal_models (DA-Occ and FlashOcc at small size)",
-    "da_occ_16f": "the recurrent history: da_occ_tiny_temporal here, test_temporal_models",
+    "da_occ_16f": "the concatenated history (here of 16 frames): test_temporal_models (DA-Occ and FlashOcc at small "
+                  "size)",
+    "da_occ_16f_recurrent": "the recurrent history: da_occ_tiny_temporal here, test_temporal_models",
     "flashocc_m0_4d": "BEVDet4D's concatenated history on FlashOcc: test_temporal_models",
 }
 
@@ -52,6 +54,7 @@ STEPPED_ELSEWHERE = {
 NO_PAPER_ROW = {
     "daocc_lidar": "DAOcc without its camera branch",
     "flashocc_m0_4d": "FlashOcc publishes its temporal models with stereo depth only (M2, 4D-Stereo)",
+    "da_occ_16f_recurrent": "da_occ_16f's history as a recurrent state: occkit's constant-cost variant of the row",
 }
 
 
