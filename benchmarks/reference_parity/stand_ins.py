@@ -1,0 +1,74 @@
+"""The thinnest stand-ins for the OpenMMLab packages that the reference code imports at module level.
+
+The reference repositories (Yzichen/FlashOCC, AlphaPlusTT/DAOcc) import mmcv 1.x, mmdet 2.x and mmdet3d 1.x, whose
+compiled ops do not build here. The harness runs only reference functions that need none of them (image and BEV
+augmentation bookkeeping), so each imported name is a placeholder: a registry whose ``register_module()`` returns the
+class unchanged, and classes that fail loudly if anything ever instantiates them. :func:`installed` puts them in
+``sys.modules`` for the duration of an import and removes them afterwards.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import sys
+import types
+from collections.abc import Iterator
+
+
+class Registry:
+    """mmcv's ``Registry`` reduced to its decorator: the class is kept unchanged."""
+
+    def __init__(self, name: str) -> None:
+        self.name = name
+        self.modules: dict[str, type] = {}
+
+    def register_module(self, *args, **kwargs):
+        def register(cls: type) -> type:
+            self.modules[cls.__name__] = cls
+            return cls
+
+        return register
+
+
+def _placeholder(name: str) -> type:
+    """A class the reference names at import time but the harness never uses."""
+
+    def refuse(self, *args, **kwargs):
+        raise RuntimeError(f"{name} is a stand-in of the parity harness: the reference code used it after all")
+
+    return type(name, (), {"__init__": refuse})
+
+
+#: module -> names it must provide (placeholders unless a registry).
+_MODULES: dict[str, tuple[str, ...]] = {
+    "mmcv": (),
+    "mmdet": (),
+    "mmdet.datasets": (),
+    "mmdet.datasets.pipelines": ("LoadAnnotations", "LoadImageFromFile"),
+    "mmdet3d": (),
+    "mmdet3d.core": (),
+    "mmdet3d.core.points": ("BasePoints", "get_points_type"),
+    "mmdet3d.core.bbox": ("LiDARInstance3DBoxes",),
+    "mmdet3d.datasets": (),
+    "mmdet3d.datasets.builder": ("PIPELINES",),
+    "pyquaternion": ("Quaternion",),
+}
+
+
+@contextlib.contextmanager
+def installed() -> Iterator[dict[str, types.ModuleType]]:
+    """The stand-in modules in ``sys.modules`` (a module already imported is kept), removed on exit."""
+    added: dict[str, types.ModuleType] = {}
+    for name, attributes in _MODULES.items():
+        if name in sys.modules:
+            continue
+        module = types.ModuleType(name)
+        module.__path__ = []  # a package, so that submodules import
+        for attribute in attributes:
+            setattr(module, attribute, Registry(attribute) if attribute.isupper() else _placeholder(attribute))
+        sys.modules[name] = added[name] = module
+    try:
+        yield added
+    finally:
+        for name in added:
+            sys.modules.pop(name, None)
