@@ -4,7 +4,7 @@ reference code runs here.
 
 The data side: for the reference's augmentation draws, occkit's sampling gives the same parameters and occkit's
 image and BEV augmentation matrices equal the ones FlashOcc's ``PrepareImageInputs.img_transform`` and
-``LoadAnnotationsBEVDepth.bev_transform`` computed.
+``LoadAnnotationsBEVDepth.bev_transform`` computed; occkit's LSS frustum is ``LSSViewTransformer.create_frustum``'s.
 """
 
 from __future__ import annotations
@@ -18,8 +18,9 @@ import pytest
 import torch
 
 from occkit.data.transforms import BevAugConfig, ImageAugConfig, sample_bev_aug, sample_image_aug
+from occkit.models.view_transform.lss import frustum
 
-GOLDEN = Path(__file__).parent / "golden" / "reference_parity" / "flashocc_augmentation.json"
+GOLDEN = Path(__file__).parent / "golden" / "reference_parity" / "flashocc_data_side.json"
 
 
 @pytest.fixture(scope="module")
@@ -50,7 +51,7 @@ def _image_config(golden: dict) -> ImageAugConfig:
 
 def test_the_golden_names_the_reference_and_its_commit(golden):
     assert golden["repository"] == "Yzichen/FlashOCC" and len(golden["commit"]) == 40
-    assert golden["file"].endswith("pipelines/loading.py")
+    assert [Path(f).name for f in golden["files"]] == ["loading.py", "view_transformer.py"]
 
 
 def test_image_augmentation_parameters_and_matrices_equal_flashoccs(golden):
@@ -92,3 +93,13 @@ def test_the_draws_cover_every_branch(golden):
     assert {d["flip"] for d in draws if d["train"]} == {True, False}
     assert any(not d["train"] for d in draws)
     assert np.ptp([d["rotate_deg"] for d in golden["bev_bevdet"]]) > 10
+
+
+@pytest.mark.parametrize("name", ["flashocc_m0", "flashocc_m1", "bevdet_r50_cbgs"])
+def test_the_lss_frustum_is_flashoccs(golden, name):
+    reference = golden["frustum"][name]
+    points = frustum(reference["image_size"], reference["stride"], reference["depth"])
+    assert list(points.shape) == reference["shape"]
+    u, v, d = (torch.tensor(reference[axis]) for axis in ("u", "v", "d"))
+    expected = torch.stack(torch.broadcast_tensors(u[None, None, :], v[None, :, None], d[:, None, None]), dim=-1)
+    torch.testing.assert_close(points, expected, rtol=0, atol=1e-6)

@@ -39,9 +39,34 @@ def _placeholder(name: str) -> type:
     return type(name, (), {"__init__": refuse})
 
 
-#: module -> names it must provide (placeholders unless a registry).
+def _base_module() -> type:
+    """mmcv's ``BaseModule``: an ``nn.Module`` (its weight initialisation from configs is not used here)."""
+    from torch import nn
+
+    return type("BaseModule", (nn.Module,), {})
+
+
+def _force_fp32(*args, **kwargs):
+    """mmcv's ``force_fp32`` decorator factory: the function unchanged (the harness runs in fp32)."""
+    return lambda function: function
+
+
+#: Names whose stand-in is not a placeholder.
+_SPECIAL = {"BaseModule": _base_module, "force_fp32": lambda: _force_fp32}
+
+#: module -> names it must provide (placeholders unless a registry or in _SPECIAL). FlashOcc's plugin package is
+#: included so that a module of it imports with its relative imports (``...ops``: its CUDA ops) resolved to stand-ins.
 _MODULES: dict[str, tuple[str, ...]] = {
     "mmcv": (),
+    "mmcv.runner": ("BaseModule", "force_fp32"),
+    "mmdet3d.models": (),
+    "mmdet3d.models.builder": ("NECKS",),
+    "projects": (),
+    "projects.mmdet3d_plugin": (),
+    "projects.mmdet3d_plugin.ops": ("bev_pool_v2",),
+    "projects.mmdet3d_plugin.models": (),
+    "projects.mmdet3d_plugin.models.necks": (),
+    "projects.mmdet3d_plugin.models.model_utils": ("DepthNet",),
     "mmdet": (),
     "mmdet.datasets": (),
     "mmdet.datasets.pipelines": ("LoadAnnotations", "LoadImageFromFile"),
@@ -65,7 +90,11 @@ def installed() -> Iterator[dict[str, types.ModuleType]]:
         module = types.ModuleType(name)
         module.__path__ = []  # a package, so that submodules import
         for attribute in attributes:
-            setattr(module, attribute, Registry(attribute) if attribute.isupper() else _placeholder(attribute))
+            if attribute in _SPECIAL:
+                value = _SPECIAL[attribute]()
+            else:
+                value = Registry(attribute) if attribute.isupper() else _placeholder(attribute)
+            setattr(module, attribute, value)
         sys.modules[name] = added[name] = module
     try:
         yield added

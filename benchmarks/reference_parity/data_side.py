@@ -1,15 +1,16 @@
-"""Golden augmentation matrices from FlashOcc's own pipeline code, for the data side of the parity test.
+"""The data side of the parity test: augmentation matrices and LSS frustums from FlashOcc's own code.
 
-    python benchmarks/reference_parity/augmentation.py --reference PATH/TO/FlashOCC \\
-        [--out tests/golden/reference_parity/flashocc_augmentation.json]
+    python benchmarks/reference_parity/data_side.py --reference PATH/TO/FlashOCC \\
+        [--out tests/golden/reference_parity/flashocc_data_side.json]
 
 Runs the reference's ``PrepareImageInputs`` (``sample_augmentation`` and ``img_transform``) and
 ``LoadAnnotationsBEVDepth`` (``sample_bda_augmentation`` and ``bev_transform``) from
 ``projects/mmdet3d_plugin/datasets/pipelines/loading.py`` of a checkout of Yzichen/FlashOCC at the pinned commit, with
-FlashOcc M0's ``data_config`` and ``bda_aug_conf``, on seeded draws; the OpenMMLab imports are stand-ins
-(:mod:`stand_ins`), as none of them is used by these functions. Writes each draw's parameters and the reference's
-``post_rot`` / ``post_tran`` and BEV ``rot_mat``, with the repository and commit, for
-``tests/test_reference_parity.py`` to compare occkit's ``image_aug_matrix`` and ``sample_bev_aug`` with.
+FlashOcc M0's ``data_config`` and ``bda_aug_conf``, on seeded draws, and the frustum of ``LSSViewTransformer``
+(``projects/mmdet3d_plugin/models/necks/view_transformer.py``) for M0's, M1's and BEVDet's depth bins; the OpenMMLab
+imports and FlashOcc's CUDA ops are stand-ins (:mod:`stand_ins`), as none of them is used by these functions. Writes
+each draw's parameters and the reference's ``post_rot`` / ``post_tran`` and BEV ``rot_mat``, and each frustum's axes,
+with the repository and commit, for ``tests/test_reference_parity.py`` to compare occkit with.
 """
 
 from __future__ import annotations
@@ -32,6 +33,9 @@ REPOSITORY = "Yzichen/FlashOCC"
 #: The commit the goldens come from; another checkout is refused.
 PINNED_COMMIT = "4084861d8d605bb01df55fcbc8072036055aa625"
 LOADING = "projects/mmdet3d_plugin/datasets/pipelines/loading.py"
+VIEW_TRANSFORMER = "projects/mmdet3d_plugin/models/necks/view_transformer.py"
+#: grid_config['depth'] of flashocc-r50-M0.py, flashocc-r50.py (M1) and bevdet-r50-cbgs.py.
+DEPTH_CONFIGS = {"flashocc_m0": (1.0, 45.0, 1.0), "flashocc_m1": (1.0, 45.0, 0.5), "bevdet_r50_cbgs": (1.0, 60.0, 1.0)}
 #: flashocc-r50-M0.py's data_config and bda_aug_conf.
 DATA_CONFIG = {"cams": ["CAM_FRONT_LEFT", "CAM_FRONT", "CAM_FRONT_RIGHT", "CAM_BACK_LEFT", "CAM_BACK",
                         "CAM_BACK_RIGHT"], "Ncams": 6, "input_size": (256, 704), "src_size": (900, 1600),
@@ -48,16 +52,34 @@ def commit_of(checkout: Path) -> str:
     return done.stdout.strip()
 
 
-def load_reference(checkout: Path):
-    """The reference's ``loading.py`` as a module, imported with the stand-ins in place."""
-    path = checkout / LOADING
+def load_reference(checkout: Path, relative: str):
+    """The reference's file ``relative`` as a module, imported under its package's name (so that its relative
+    imports resolve) with the stand-ins in place."""
+    path = checkout / relative
     if not path.is_file():
         raise SystemExit(f"{path} does not exist: --reference must be a checkout of {REPOSITORY}")
     with stand_ins.installed():
-        spec = importlib.util.spec_from_file_location("reference_loading", path)
+        spec = importlib.util.spec_from_file_location(relative.removesuffix(".py").replace("/", "."), path)
         module = importlib.util.module_from_spec(spec)
         spec.loader.exec_module(module)
     return module
+
+
+def frustums(view_transformer) -> dict:
+    """The reference frustum ``(D, fH, fW, 3)`` of each depth config at M0's input (256 x 704, stride 16), as its
+    three axes; that the axes rebuild it exactly is checked here."""
+    height, width = DATA_CONFIG["input_size"]
+    found = {}
+    for name, depth in DEPTH_CONFIGS.items():
+        grid = {"x": [-40, 40, 0.4], "y": [-40, 40, 0.4], "z": [-1, 5.4, 6.4], "depth": list(depth)}
+        frustum = view_transformer.LSSViewTransformer(grid, (height, width), downsample=16, in_channels=8,
+                                                      out_channels=4).frustum  # fmt: skip
+        u, v, d = frustum[0, 0, :, 0], frustum[0, :, 0, 1], frustum[:, 0, 0, 2]
+        rebuilt = torch.stack(torch.broadcast_tensors(u[None, None, :], v[None, :, None], d[:, None, None]), dim=-1)
+        assert torch.equal(rebuilt, frustum), name
+        found[name] = {"depth": list(depth), "image_size": [height, width], "stride": 16,
+                       "shape": list(frustum.shape), "u": u.tolist(), "v": v.tolist(), "d": d.tolist()}
+    return found
 
 
 def image_draws(loading, count: int) -> list[dict]:
@@ -95,24 +117,25 @@ def bev_draws(loading, config: dict, count: int) -> list[dict]:
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--reference", type=Path, required=True, help=f"a checkout of {REPOSITORY}")
-    parser.add_argument("--out", type=Path, default=Path("tests/golden/reference_parity/flashocc_augmentation.json"))
+    parser.add_argument("--out", type=Path, default=Path("tests/golden/reference_parity/flashocc_data_side.json"))
     parser.add_argument("--draws", type=int, default=16)
     args = parser.parse_args()
     commit = commit_of(args.reference)
     if commit != PINNED_COMMIT:
         raise SystemExit(f"{args.reference} is at {commit}; the goldens come from {PINNED_COMMIT} (git checkout it)")
-    loading = load_reference(args.reference)
+    loading = load_reference(args.reference, LOADING)
     golden = {
-        "repository": REPOSITORY, "commit": commit, "file": LOADING,
+        "repository": REPOSITORY, "commit": commit, "files": [LOADING, VIEW_TRANSFORMER],
         "data_config": DATA_CONFIG, "bda_aug_conf": BDA_AUG_CONF, "bda_aug_conf_bevdet": BDA_AUG_CONF_BEVDET,
         "image": image_draws(loading, args.draws),
         "bev": bev_draws(loading, BDA_AUG_CONF, args.draws),
         "bev_bevdet": bev_draws(loading, BDA_AUG_CONF_BEVDET, args.draws),
+        "frustum": frustums(load_reference(args.reference, VIEW_TRANSFORMER)),
     }  # fmt: skip
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(golden, indent=1) + "\n")
-    print(f"wrote {len(golden['image'])} image and {2 * args.draws} BEV draws of {REPOSITORY}@{commit[:12]} to "
-          f"{args.out}")
+    print(f"wrote {len(golden['image'])} image and {2 * args.draws} BEV draws and {len(golden['frustum'])} frustums of "
+          f"{REPOSITORY}@{commit[:12]} to {args.out}")
     return 0
 
 
