@@ -17,15 +17,21 @@ import numpy as np
 import pytest
 import torch
 
+from occkit import zoo
 from occkit.data.transforms import BevAugConfig, ImageAugConfig, sample_bev_aug, sample_image_aug
 from occkit.models.view_transform.lss import frustum
 
-GOLDEN = Path(__file__).parent / "golden" / "reference_parity" / "flashocc_data_side.json"
+GOLDENS = Path(__file__).parent / "golden" / "reference_parity"
 
 
 @pytest.fixture(scope="module")
 def golden() -> dict:
-    return json.loads(GOLDEN.read_text())
+    return json.loads((GOLDENS / "flashocc_data_side.json").read_text())
+
+
+@pytest.fixture(scope="module")
+def daocc_golden() -> dict:
+    return json.loads((GOLDENS / "daocc_data_side.json").read_text())
 
 
 class _Scripted:
@@ -103,3 +109,47 @@ def test_the_lss_frustum_is_flashoccs(golden, name):
     u, v, d = (torch.tensor(reference[axis]) for axis in ("u", "v", "d"))
     expected = torch.stack(torch.broadcast_tensors(u[None, None, :], v[None, :, None], d[:, None, None]), dim=-1)
     torch.testing.assert_close(points, expected, rtol=0, atol=1e-6)
+
+
+def test_the_paper_presets_augment_as_their_references(golden, daocc_golden):
+    """FlashOcc M0 and DAOcc train with the reference configs' augmentation settings (FlashOcc's data_config and
+    bda_aug_conf; DAOcc's augment2d, ImageAug3D's bottom crop and flips, and an identity GlobalRotScaleTrans)."""
+    flashocc, daocc = zoo.experiment("flashocc_m0").data, zoo.experiment("daocc").data
+    assert flashocc.image_aug == _image_config(golden)
+    conf = golden["bda_aug_conf"]
+    assert flashocc.bev_aug == BevAugConfig(flip_x=conf["flip_dx_ratio"], flip_y=conf["flip_dy_ratio"],
+                                            rotate_deg=tuple(conf["rot_lim"]), scale=tuple(conf["scale_lim"]))
+    reference = daocc_golden["image_aug"]
+    assert daocc.image_aug == ImageAugConfig(final_size=tuple(reference["final_dim"]),
+                                             resize_range=tuple(reference["resize_lim"]),
+                                             bottom_crop=reference["bot_pct_lim"] == [0.0, 0.0],
+                                             flip=reference["rand_flip"], rotate_deg=tuple(reference["rot_lim"]))
+    # RandomFlip3D flips each axis with probability one half; the 3D rotation and scale are off in the occ3d config.
+    assert daocc.bev_aug == BevAugConfig(flip_x=0.5, flip_y=0.5, rotate_deg=(0.0, 0.0), scale=(1.0, 1.0))
+
+
+def test_daoccs_image_augmentation_equals_its_reference(daocc_golden):
+    reference = daocc_golden["image_aug"]
+    config = ImageAugConfig(final_size=tuple(reference["final_dim"]), resize_range=tuple(reference["resize_lim"]),
+                            bottom_crop=True, flip=True, rotate_deg=tuple(reference["rot_lim"]))  # fmt: skip
+    width, height = daocc_golden["original_size"]
+    base = config.final_size[1] / width
+    for draw in daocc_golden["image"]:
+        rng = _Scripted([draw["resize"] - base, draw["crop"][0], draw["rotate_deg"]], [0.0 if draw["flip"] else 0.9])
+        params = sample_image_aug(config, (width, height), draw["train"], rng)
+        assert list(params.crop) == draw["crop"] and params.flip == draw["flip"], draw["seed"]
+        matrix = params.matrix().to(torch.float64)
+        torch.testing.assert_close(matrix[:2, :2], torch.tensor(draw["rotation"], dtype=torch.float64), rtol=0,
+                                   atol=1e-6)  # fmt: skip
+        torch.testing.assert_close(matrix[:2, 2], torch.tensor(draw["translation"], dtype=torch.float64), rtol=0,
+                                   atol=1e-4)  # fmt: skip
+
+
+def test_daoccs_bev_flips_equal_its_reference(daocc_golden):
+    config = BevAugConfig(flip_x=0.5, flip_y=0.5)
+    for draw in daocc_golden["flip"]:
+        rng = _Scripted([0.0, 1.0], [0.0 if draw["flip_x"] else 0.9, 0.0 if draw["flip_y"] else 0.9])
+        occ_aug = sample_bev_aug(config, rng, train=True)
+        for key in ("lidar_aug_matrix", "occ_aug_matrix"):
+            torch.testing.assert_close(occ_aug, torch.tensor(draw[key], dtype=torch.float64), rtol=0, atol=0)
+    assert {(d["flip_x"], d["flip_y"]) for d in daocc_golden["flip"]} == {(a, b) for a in (0, 1) for b in (0, 1)}

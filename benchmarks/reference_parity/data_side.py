@@ -45,19 +45,23 @@ BDA_AUG_CONF = {"rot_lim": (-0.0, 0.0), "scale_lim": (1.0, 1.0), "flip_dx_ratio"
 BDA_AUG_CONF_BEVDET = {"rot_lim": (-22.5, 22.5), "scale_lim": (0.95, 1.05), "flip_dx_ratio": 0.5, "flip_dy_ratio": 0.5}
 
 
-def commit_of(checkout: Path) -> str:
+def pinned_checkout(checkout: Path, repository: str, pinned: str) -> str:
+    """The commit of ``checkout``, which must be ``repository`` at ``pinned``."""
     done = subprocess.run(["git", "-C", str(checkout), "rev-parse", "HEAD"], capture_output=True, text=True)
     if done.returncode != 0:
-        raise SystemExit(f"{checkout} is not a git checkout of {REPOSITORY}: {done.stderr.strip()}")
-    return done.stdout.strip()
+        raise SystemExit(f"{checkout} is not a git checkout of {repository}: {done.stderr.strip()}")
+    commit = done.stdout.strip()
+    if commit != pinned:
+        raise SystemExit(f"{checkout} is at {commit}; the goldens come from {repository} {pinned} (git checkout it)")
+    return commit
 
 
-def load_reference(checkout: Path, relative: str):
+def load_reference(checkout: Path, relative: str, repository: str = REPOSITORY):
     """The reference's file ``relative`` as a module, imported under its package's name (so that its relative
     imports resolve) with the stand-ins in place."""
     path = checkout / relative
     if not path.is_file():
-        raise SystemExit(f"{path} does not exist: --reference must be a checkout of {REPOSITORY}")
+        raise SystemExit(f"{path} does not exist: --reference must be a checkout of {repository}")
     with stand_ins.installed():
         spec = importlib.util.spec_from_file_location(relative.removesuffix(".py").replace("/", "."), path)
         module = importlib.util.module_from_spec(spec)
@@ -114,15 +118,25 @@ def bev_draws(loading, config: dict, count: int) -> list[dict]:
     return draws
 
 
-def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--reference", type=Path, required=True, help=f"a checkout of {REPOSITORY}")
-    parser.add_argument("--out", type=Path, default=Path("tests/golden/reference_parity/flashocc_data_side.json"))
-    parser.add_argument("--draws", type=int, default=16)
+def harness_arguments(description: str, repository: str, pinned: str, golden: str) -> tuple[argparse.Namespace, str]:
+    """The command line every harness script takes (``--reference``, ``--out``, ``--draws``) and the checkout's
+    commit, which must be ``pinned``."""
+    parser = argparse.ArgumentParser(description=description)
+    parser.add_argument("--reference", type=Path, required=True, help=f"a checkout of {repository}")
+    parser.add_argument("--out", type=Path, default=Path("tests/golden/reference_parity") / golden)
+    parser.add_argument("--draws", type=int, default=16, help="seeded draws per augmentation (default 16)")
     args = parser.parse_args()
-    commit = commit_of(args.reference)
-    if commit != PINNED_COMMIT:
-        raise SystemExit(f"{args.reference} is at {commit}; the goldens come from {PINNED_COMMIT} (git checkout it)")
+    return args, pinned_checkout(args.reference, repository, pinned)
+
+
+def write_golden(path: Path, golden: dict, what: str) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(golden, indent=1) + "\n")
+    print(f"wrote {what} of {golden['repository']}@{golden['commit'][:12]} to {path}")
+
+
+def main() -> int:
+    args, commit = harness_arguments(__doc__.splitlines()[0], REPOSITORY, PINNED_COMMIT, "flashocc_data_side.json")
     loading = load_reference(args.reference, LOADING)
     golden = {
         "repository": REPOSITORY, "commit": commit, "files": [LOADING, VIEW_TRANSFORMER],
@@ -132,10 +146,8 @@ def main() -> int:
         "bev_bevdet": bev_draws(loading, BDA_AUG_CONF_BEVDET, args.draws),
         "frustum": frustums(load_reference(args.reference, VIEW_TRANSFORMER)),
     }  # fmt: skip
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(golden, indent=1) + "\n")
-    print(f"wrote {len(golden['image'])} image and {2 * args.draws} BEV draws and {len(golden['frustum'])} frustums of "
-          f"{REPOSITORY}@{commit[:12]} to {args.out}")
+    write_golden(args.out, golden, f"{len(golden['image'])} image and {2 * args.draws} BEV draws and "
+                                   f"{len(golden['frustum'])} frustums")
     return 0
 
 

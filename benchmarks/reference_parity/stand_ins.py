@@ -57,7 +57,8 @@ _SPECIAL = {"BaseModule": _base_module, "force_fp32": lambda: _force_fp32}
 #: module -> names it must provide (placeholders unless a registry or in _SPECIAL). FlashOcc's plugin package is
 #: included so that a module of it imports with its relative imports (``...ops``: its CUDA ops) resolved to stand-ins.
 _MODULES: dict[str, tuple[str, ...]] = {
-    "mmcv": (),
+    "mmcv": ("is_tuple_of",),
+    "mmcv.utils": ("build_from_cfg",),
     "mmcv.runner": ("BaseModule", "force_fp32"),
     "mmdet3d.models": (),
     "mmdet3d.models.builder": ("NECKS",),
@@ -70,12 +71,15 @@ _MODULES: dict[str, tuple[str, ...]] = {
     "mmdet": (),
     "mmdet.datasets": (),
     "mmdet.datasets.pipelines": ("LoadAnnotations", "LoadImageFromFile"),
+    "mmdet.datasets.builder": ("PIPELINES",),
     "mmdet3d": (),
-    "mmdet3d.core": (),
+    "mmdet3d.core": ("VoxelGenerator",),
     "mmdet3d.core.points": ("BasePoints", "get_points_type"),
-    "mmdet3d.core.bbox": ("LiDARInstance3DBoxes",),
+    "mmdet3d.core.bbox": ("LiDARInstance3DBoxes", "CameraInstance3DBoxes", "DepthInstance3DBoxes", "box_np_ops"),
     "mmdet3d.datasets": (),
-    "mmdet3d.datasets.builder": ("PIPELINES",),
+    "mmdet3d.datasets.builder": ("PIPELINES", "OBJECTSAMPLERS"),
+    "mmdet3d.datasets.pipelines": (),
+    "mmdet3d.datasets.pipelines.utils": ("noise_per_object_v3_",),
     "pyquaternion": ("Quaternion",),
 }
 
