@@ -55,6 +55,7 @@ __all__ = [
     "write_report",
     "check_not_inside",
     "write_atomic",
+    "fsync_folder",
     "write_error",
 ]
 
@@ -487,19 +488,35 @@ def write_error(error: OSError, path: Path) -> OSError:
     return failure
 
 
+def fsync_folder(folder: Path) -> None:
+    """Make a rename in ``folder`` durable (a crash right after it keeps the new file); a no-op where the file
+    system cannot open folders (the rename is atomic all the same)."""
+    try:
+        fd = os.open(folder, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
 def write_atomic(path: Path, data: bytes | str) -> Path:
     """Write ``data`` to ``path`` (its folder created if need be) through a temporary file in the same folder and a
-    rename, so the file is never seen half written. A failed write removes the temporary file and raises
-    :func:`write_error`'s one line."""
+    rename, so the file is never seen half written, and flushed to disk. A failed write removes the temporary file
+    and raises :func:`write_error`'s one line."""
     path = Path(path)
     temporary = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         with open(temporary, "wb") as handle:
             handle.write(data.encode() if isinstance(data, str) else data)
+            handle.flush()
+            os.fsync(handle.fileno())
         os.replace(temporary, path)
     except OSError as error:
         with contextlib.suppress(OSError):
             temporary.unlink()
         raise write_error(error, path) from error
+    fsync_folder(path.parent)
     return path

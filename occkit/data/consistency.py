@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from occkit.data.labels import read_occ3d_labels
 from occkit.data.tables import NuScenesTables, load_tables
 from occkit.geometry.se3 import transform_from_quaternion
 from occkit.label_space import OCC3D_SPACE
@@ -65,8 +66,7 @@ def lidar_in_occupied(root: str | Path, version: str) -> dict:
         ego = ego[inside]
         labels = root / OCC3D_SPACE.label_folder / sample_scene[record["sample_token"]] / record["sample_token"] / \
             "labels.npz"  # fmt: skip
-        with np.load(labels) as gt:
-            occupied = gt["semantics"] != OCC3D_SPACE.free_index
+        occupied = read_occ3d_labels(labels, record["sample_token"]).semantics != OCC3D_SPACE.free_index
         found = np.zeros(ego.shape[0], dtype=bool)
         for offset in offsets:
             index = OCC3D_SPACE.grid.world_to_index(ego + torch.from_numpy(offset))[0].numpy().clip(0, upper)

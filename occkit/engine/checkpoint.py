@@ -25,13 +25,13 @@ import torch
 from occkit.config import to_dict
 from occkit.data.dataset import DatasetConfig
 from occkit.experiment import TrainConfig
+from occkit.outputs import fsync_folder, write_atomic
 from occkit.weight_files import check_finite, load_torch_file
 from occkit.zoo import config_class
 
 __all__ = [
     "FORMAT",
     "atomic_save",
-    "atomic_write_text",
     "save_checkpoint",
     "load_checkpoint",
     "latest_checkpoint",
@@ -57,17 +57,6 @@ def ensure_writable(out: Path) -> None:
         raise PermissionError(f"cannot write to --out {out}: {error.strerror}") from error
 
 
-def _fsync_dir(folder: Path) -> None:
-    try:
-        fd = os.open(folder, os.O_RDONLY)
-    except OSError:  # some filesystems do not open folders; the rename is still atomic
-        return
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
 def atomic_save(payload: Any, path: str | Path) -> Path:
     """``torch.save`` to ``path`` through a temporary file and a rename: the target is never seen half written."""
     path = Path(path)
@@ -80,19 +69,8 @@ def atomic_save(payload: Any, path: str | Path) -> Path:
         os.replace(temporary, path)
     finally:
         temporary.unlink(missing_ok=True)
-    _fsync_dir(path.parent)
+    fsync_folder(path.parent)
     return path
-
-
-def atomic_write_text(text: str, path: Path) -> None:
-    """Write ``text`` to ``path`` through a temporary file and a rename, like :func:`atomic_save`."""
-    temporary = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    with open(temporary, "w") as handle:
-        handle.write(text)
-        handle.flush()
-        os.fsync(handle.fileno())
-    os.replace(temporary, path)
-    _fsync_dir(path.parent)
 
 
 def rng_state() -> dict[str, Any]:
@@ -126,7 +104,7 @@ def save_checkpoint(folder: str | Path, payload: dict[str, Any], step: int, keep
     """Write ``step-XXXXXXXX.pt``, point ``last.json`` at it, then delete rolling checkpoints beyond ``keep_last``."""
     folder = Path(folder)
     path = atomic_save({"format": FORMAT, **payload}, folder / f"step-{step:08d}.pt")
-    atomic_write_text(json.dumps({"checkpoint": path.name, "step": step}) + "\n", folder / "last.json")
+    write_atomic(folder / "last.json", json.dumps({"checkpoint": path.name, "step": step}) + "\n")
     rolling = sorted(folder.glob("step-*.pt"))
     for old in rolling[:-keep_last]:
         old.unlink(missing_ok=True)

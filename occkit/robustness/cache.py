@@ -34,8 +34,8 @@ from occkit import __version__
 from occkit.data.corruptions import CORRUPTIONS
 from occkit.data.dataset import OccupancyDataset
 from occkit.data.index import tables_key
-from occkit.engine.checkpoint import atomic_write_text
 from occkit.errors import InputError
+from occkit.outputs import write_atomic
 from occkit.robustness.suite import Case
 
 __all__ = ["CASES_FOLDER", "cache_context", "case_fingerprint", "case_path", "check_case_paths", "read_cached",
@@ -155,4 +155,4 @@ def read_cached(path: Path, fingerprint: dict) -> dict | None:
 
 def write_case(path: Path, fingerprint: dict, result: dict) -> None:
     """Store a case's ``result`` under its ``fingerprint``, atomically."""
-    atomic_write_text(json.dumps({"fingerprint": fingerprint, "result": result}, indent=2) + "\n", path)
+    write_atomic(path, json.dumps({"fingerprint": fingerprint, "result": result}, indent=2) + "\n")

@@ -23,9 +23,9 @@ from typing import Any
 
 from occkit.data.corruptions import CORRUPTIONS
 from occkit.data.dataset import OccupancyDataset
-from occkit.engine.checkpoint import atomic_write_text
 from occkit.engine.evaluate import dataset_ray_origins, evaluate_model, evaluation_dataset, load_trained
 from occkit.errors import InputError
+from occkit.outputs import write_atomic
 from occkit.robustness.cache import (
     CASES_FOLDER,
     cache_context,
@@ -159,8 +159,8 @@ def run_robustness(
         "seconds": time.perf_counter() - started, "seconds_computed": sum(r["seconds"] for r in results.values()
                                                                           if not r["cached"]),
     })  # fmt: skip
-    atomic_write_text(json.dumps(report, indent=2) + "\n", out / "robustness.json")
-    atomic_write_text(markdown(report), out / "robustness.md")
+    write_atomic(out / "robustness.json", json.dumps(report, indent=2) + "\n")
+    write_atomic(out / "robustness.md", markdown(report))
     plot_resilience(report, out / "resilience.png")
     if plot_severity(report, out / "severity.png") is None:
         (out / "severity.png").unlink(missing_ok=True)  # an earlier run's curves, of another suite

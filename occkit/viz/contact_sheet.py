@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
+from occkit.data.labels import read_occ3d_labels
 from occkit.figure import new_figure, save_figure
 from occkit.viz.bev import bev_image
 from occkit.viz.cameras import SURROUND_LAYOUT
@@ -50,8 +51,8 @@ def contact_sheet(root: str | Path, out: str | Path, samples: int = 3, scene: st
                 with Image.open(root / camera["img_path"]) as image:
                     axis.imshow(np.asarray(image.convert("RGB")))
                 axis.text(4, 4, name, fontsize=8, va="top", color="white", backgroundcolor=(0, 0, 0, 0.5))
-        with np.load(root / frame["gt_path"]) as labels:
-            bev = bev_image(labels["semantics"], labels["mask_camera"])
+        labels = read_occ3d_labels(root / frame["gt_path"])  # checked from the headers, as every label reader
+        bev = bev_image(labels.semantics, labels.mask_camera)
         axis = figure.add_subplot(grid[2 * row : 2 * row + 2, 3])
         axis.imshow(bev, interpolation="nearest")
         axis.text(
