@@ -564,25 +564,33 @@ def _convert(
     return result
 
 
-def convert_state_dict(reference_state: Mapping[str, Tensor], entry: str, strict: bool = True) -> Conversion:
-    """Map a reference state dict onto the model of zoo entry ``entry``.
+def convert_state_dict(
+    reference_state: Mapping[str, Tensor], entry: str | nn.Module, strict: bool = True
+) -> Conversion:
+    """Map a reference state dict onto the model of zoo entry ``entry``, or onto a model built from a config.
 
     Args:
         reference_state: reference key -> tensor (``module.`` prefixes already stripped, see :func:`read_checkpoint`).
         entry: zoo entry, e.g. ``flashocc_m0``, ``flashocc_m1``, ``daocc``; any entry whose model has the
-            reference's module structure converts when the shapes fit.
+            reference's module structure converts when the shapes fit. Or an occkit model (e.g. one of a reference
+            config's reduced width, as the parity tests build).
         strict: raise unless the conversion is complete.
 
     Returns:
-        The :class:`Conversion`; its ``state`` loads into ``zoo.build(entry)`` with ``strict=True`` when complete.
+        The :class:`Conversion`; its ``state`` loads into ``zoo.build(entry)`` (or the model) with ``strict=True``
+        when complete.
 
     Raises:
         ConfigError: the checkpoint is of another model (the message names both), or, in strict mode, a reference key
             without counterpart, an unfilled occkit key or a shape mismatch (the message names them, and other
             entries of the architecture the checkpoint fits).
     """
-    _check_entry(entry)
-    architecture, expected = _entry_expected(entry)
+    if isinstance(entry, nn.Module):
+        architecture, expected = _architecture_of(entry), _expected_state(entry)
+        entry = f"the given {architecture} model"
+    else:
+        _check_entry(entry)
+        architecture, expected = _entry_expected(entry)
     conversion = _convert(reference_state, architecture, expected, entry, strict)
     if strict and not conversion.complete:
         raise _incomplete(conversion, reference_state)

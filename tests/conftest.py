@@ -159,12 +159,18 @@ def synthetic_batch():
 
 
 @functools.cache
-def crafting():
-    """``benchmarks/bad_inputs.py``: the one home of the crafted files of the bad-input tests (archive bombs, a pickle
-    that calls ``os.system``, ``.npy`` headers) and of its reading of a command's error lines."""
-    path = Path(__file__).resolve().parents[1] / "benchmarks" / "bad_inputs.py"
-    spec = importlib.util.spec_from_file_location("benchmarks_bad_inputs", path)
+def benchmark_module(relative: str):
+    """A script under ``benchmarks/`` (``bad_inputs.py``, ``reference_parity/key_coverage.py``) as a module, for
+    tests that share its code rather than copy it."""
+    path = Path(__file__).resolve().parents[1] / "benchmarks" / relative
+    spec = importlib.util.spec_from_file_location("benchmarks_" + relative.removesuffix(".py").replace("/", "_"), path)
     module = importlib.util.module_from_spec(spec)
     sys.modules[spec.name] = module  # dataclasses look their module up while the file runs
     spec.loader.exec_module(module)
     return module
+
+
+def crafting():
+    """``benchmarks/bad_inputs.py``: the one home of the crafted files of the bad-input tests (archive bombs, a pickle
+    that calls ``os.system``, ``.npy`` headers) and of its reading of a command's error lines."""
+    return benchmark_module("bad_inputs.py")

@@ -23,6 +23,18 @@ def test_resnet50_lss_fpn_shapes_and_parameters_at_the_paper_resolution():
         assert tuple(encoder.neck(levels).shape) == (1, 256, 32, 88)
 
 
+def test_base_channels_narrow_every_stage_as_mmdets_resnet_does():
+    backbone = ResNetBackbone(ImageEncoderConfig(base_channels=4, out_stages=(1, 2, 3, 4)))
+    # Bottleneck stages: 4 * base * 2^s output channels; the stem keeps base channels.
+    assert backbone.out_channels == (16, 32, 64, 128)
+    assert backbone.stem[0].out_channels == 4
+    assert [len(stage) for stage in backbone.stages] == [3, 4, 6, 3]  # ResNet-50's blocks are kept
+    # Every weight is 1/16 of ResNet-50's width squared, give or take the stem and BatchNorm.
+    assert count_parameters(backbone) == pytest.approx(23_508_032 / 256, rel=0.05)
+    with pytest.raises(ValueError, match="base_channels"):
+        ResNetBackbone(ImageEncoderConfig(base_channels=0))
+
+
 def test_multi_camera_layout_and_gradients():
     encoder = ImageEncoder(TINY)
     out = encoder(torch.randn(2, 3, 3, 64, 176))

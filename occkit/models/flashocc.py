@@ -174,8 +174,11 @@ IMAGENET = "torchvision:IMAGENET1K_V1"
 
 
 def _paper_model() -> FlashOccConfig:
+    """M0 as the reference builds it; its pooling rounds voxel indices towards zero as the reference's ``.long()``
+    does, so that its checkpoints give the reference's outputs (tests/test_reference_parity_models.py)."""
     cfg = FlashOccConfig()
-    return dataclasses.replace(cfg, image=dataclasses.replace(cfg.image, pretrained=IMAGENET))
+    return dataclasses.replace(cfg, image=dataclasses.replace(cfg.image, pretrained=IMAGENET),
+                               lss=dataclasses.replace(cfg.lss, truncate_indices=True))  # fmt: skip
 
 
 @reproduces(PAPER, "M0: FlashOcc (1f), R50 256 x 704, with BEVDet detection pretraining, camera mask",
@@ -193,7 +196,7 @@ def flashocc_m1() -> Experiment:
     cfg = _paper_model()
     model = dataclasses.replace(
         cfg,
-        lss=LSSConfig(depth_range=(1.0, 45.0, 0.5)),
+        lss=dataclasses.replace(cfg.lss, depth_range=(1.0, 45.0, 0.5)),
         bev=dataclasses.replace(cfg.bev, neck_channels=256),
         occupancy=OccupancyHeadConfig(in_channels=256, hidden_channels=256),
     )

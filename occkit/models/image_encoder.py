@@ -14,6 +14,7 @@ Two necks, as the references use them:
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Literal
 
@@ -42,6 +43,9 @@ class ImageEncoderConfig:
     """ResNet depth: 18, 34, 50 or 101 (torchvision's definitions, identical to mmdet's "pytorch" style)."""
     blocks: tuple[int, ...] = ()
     """Blocks per stage overriding the depth's (e.g. (1, 1, 1, 1) for a tiny model); empty keeps the standard ones."""
+    base_channels: int = 64
+    """Width of the stem and of the first stage's blocks, doubling per stage (mmdet's ``base_channels``); 64 is
+    torchvision's and every published model's, narrower ones serve reduced-width tests."""
     out_stages: tuple[int, ...] = (2, 3, 4)
     """ResNet stages fed to the neck (1..4 = C2..C5); DAOcc: C3, C4, C5."""
     frozen_stages: int = -1
@@ -67,6 +71,26 @@ def conv_bn_relu(in_channels: int, out_channels: int, kernel_size: int, stride: 
     )
 
 
+def _layers(net: torchvision.models.ResNet) -> list[nn.Sequential]:
+    return [net.layer1, net.layer2, net.layer3, net.layer4]
+
+
+def _resnet(block: type[nn.Module], blocks: Sequence[int], base_channels: int) -> torchvision.models.ResNet:
+    """torchvision's ResNet with ``blocks`` per stage and stage widths ``base_channels * 2^s`` (torchvision fixes 64;
+    its ``_make_layer`` builds the stages from ``inplanes`` as mmdet's ResNet does from ``base_channels``)."""
+    if base_channels < 1:
+        raise ValueError(f"base_channels must be positive, got {base_channels}")
+    net = torchvision.models.ResNet(block, list(blocks))
+    if base_channels != 64:
+        net.inplanes = base_channels
+        net.conv1 = nn.Conv2d(3, base_channels, kernel_size=7, stride=2, padding=3, bias=False)
+        net.bn1 = nn.BatchNorm2d(base_channels)
+        for stage, count in enumerate(blocks):
+            layer = net._make_layer(block, base_channels * 2**stage, count, stride=1 if stage == 0 else 2)
+            setattr(net, f"layer{stage + 1}", layer)
+    return net
+
+
 class ResNetBackbone(nn.Module):
     """torchvision ResNet without its classifier, returning the requested stages.
 
@@ -83,9 +107,8 @@ class ResNetBackbone(nn.Module):
         if not cfg.out_stages or any(s not in (1, 2, 3, 4) for s in cfg.out_stages):
             raise ValueError(f"out_stages must be a non-empty subset of 1..4, got {cfg.out_stages}")
         net = getattr(torchvision.models, _RESNETS[cfg.depth])(weights=None)
-        if cfg.blocks:
-            block = type(net.layer1[0])
-            net = torchvision.models.ResNet(block, list(cfg.blocks))
+        if cfg.blocks or cfg.base_channels != 64:
+            net = _resnet(type(net.layer1[0]), cfg.blocks or [len(layer) for layer in _layers(net)], cfg.base_channels)
         self.stem = nn.Sequential(net.conv1, net.bn1, net.relu, net.maxpool)
         self.stages = nn.ModuleList([net.layer1, net.layer2, net.layer3, net.layer4][: max(cfg.out_stages)])
         self.out_stages = tuple(cfg.out_stages)
