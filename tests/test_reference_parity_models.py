@@ -75,8 +75,9 @@ def flashocc_batch(inputs: dict[str, np.ndarray]) -> Batch:
     img_aug[..., :2, 2] = t["post_trans"][..., :2]
     occ_aug = torch.eye(4).repeat(t["bda"].shape[0], 1, 1)
     occ_aug[:, :3, :3] = t["bda"]
-    return Batch(tokens=["golden"], scenes=["golden"], images=t["images"], intrinsics=t["intrins"], cam2ego=cam2ego, img_aug=img_aug, occ_aug=occ_aug,
-                 voxel_semantics=t["voxel_semantics"].long(), mask_camera=t["mask_camera"].bool())  # fmt: skip
+    return Batch(tokens=["golden"], scenes=["golden"], images=t["images"], intrinsics=t["intrins"], cam2ego=cam2ego,
+                 img_aug=img_aug, occ_aug=occ_aug, voxel_semantics=t["voxel_semantics"].long(),
+                 mask_camera=t["mask_camera"].bool())  # fmt: skip
 
 
 def run_flashocc(model: FlashOcc, batch: Batch) -> tuple[dict[str, torch.Tensor], dict[str, float]]:

@@ -37,9 +37,9 @@ def test_bev_pool_v2_sums_depth_times_feature_of_each_pillar_into_its_cell(flash
 
 def test_bev_pool_v2_refuses_intervals_that_do_not_cover_the_points(flashocc_ops):
     depth, feat = torch.ones(1, 1, 1, 1, 2), torch.ones(1, 1, 1, 2, 1)
-    ranks = torch.tensor([0, 1], dtype=torch.int32)
+    ranks, one_interval = torch.tensor([0, 1], dtype=torch.int32), (torch.tensor([0]), torch.tensor([1]))
     with pytest.raises(ValueError, match="cover"):
-        flashocc_ops.bev_pool_v2(depth, feat, ranks, ranks, ranks, (1, 1, 1, 2, 1), torch.tensor([0]), torch.tensor([1]))
+        flashocc_ops.bev_pool_v2(depth, feat, ranks, ranks, ranks, (1, 1, 1, 2, 1), *one_interval)
 
 
 def test_mmcv_ops_placeholders_fail_loudly_when_used():

@@ -120,7 +120,8 @@ def randomise(model: torch.nn.Module, seed: int) -> None:
     generator = torch.Generator().manual_seed(seed)
     with torch.no_grad():
         for module in model.modules():
-            for name, tensor in list(module.named_parameters(recurse=False)) + list(module.named_buffers(recurse=False)):
+            tensors = [*module.named_parameters(recurse=False), *module.named_buffers(recurse=False)]
+            for name, tensor in tensors:
                 if tensor.dtype not in (torch.float32, torch.float64):
                     continue
                 uniform = torch.rand(tensor.shape, generator=generator)
@@ -277,8 +278,8 @@ def main() -> int:
             write(args.golden / f"{name}.pth", checkpoint_bytes(model, {"repository": REPOSITORY, "commit": commit,
                                                                         "config": config, "model": name}))  # fmt: skip
             write(args.golden / f"{name}_stages.npz", npz_bytes(stages))
-            meta["models"][name] = {"config": config, "model": model_cfg, "losses": losses,
-                                    "shapes": {stage: list(array.shape) for stage, array in stages.items()}}  # fmt: skip
+            shapes = {stage: list(array.shape) for stage, array in stages.items()}
+            meta["models"][name] = {"config": config, "model": model_cfg, "losses": losses, "shapes": shapes}
         write(args.golden / "inputs.npz", npz_bytes(inputs))
         write(args.golden / "meta.json", (json.dumps(meta, indent=1, default=list) + "\n").encode())
     return 0

@@ -17,12 +17,19 @@ from __future__ import annotations
 import types
 from collections.abc import Sequence
 
-import torch
 from torch import Tensor
 
 
-def bev_pool_v2(depth: Tensor, feat: Tensor, ranks_depth: Tensor, ranks_feat: Tensor, ranks_bev: Tensor,
-                bev_feat_shape: Sequence[int], interval_starts: Tensor, interval_lengths: Tensor) -> Tensor:  # fmt: skip
+def bev_pool_v2(
+    depth: Tensor,
+    feat: Tensor,
+    ranks_depth: Tensor,
+    ranks_feat: Tensor,
+    ranks_bev: Tensor,
+    bev_feat_shape: Sequence[int],
+    interval_starts: Tensor,
+    interval_lengths: Tensor,
+) -> Tensor:
     """The wrapper's signature: ``depth (B, N, D, fH, fW)``, ``feat (B, N, fH, fW, C)``, the ranks ``(P,)``,
     ``bev_feat_shape = (B, Dz, Dy, Dx, C)`` -> ``(B, C, Dz, Dy, Dx)``.
 
