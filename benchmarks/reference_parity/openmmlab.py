@@ -5,8 +5,9 @@ compiled ops (``MMCV_WITH_OPS=0``, see docs/reproducing.md) and are used as they
 ``ConvModule``, the registries and the loss utilities are the real ones. What cannot be installed is replaced here,
 by the thinnest thing the models need:
 
-* ``mmcv.ops`` (compiled): every name is a placeholder class that fails loudly when used; mmdet imports a few of them
-  at module level (NMS, RoI ops) for models the harness never builds.
+* ``mmcv.ops`` (compiled): every name is a :func:`placeholder` that fails loudly when used; mmdet imports a few of them
+  at module level (NMS, RoI ops) for models the harness never builds. :func:`stand_ins` answers such imports, and
+  the DAOcc harness's compiled ops (:mod:`daocc_ops`) through it too.
 * ``mmdet3d`` 1.0 (its ops need CUDA to build): ``mmdet3d.models`` with its registries, which in mmdet3d 1.0 hand
   every type they do not hold to mmdet's, so they are mmdet's ``MODELS`` here; its builders; and ``CenterPoint``,
   the base of BEVDet's detectors, reduced to what an image-only detector without ``pts_bbox_head`` uses from
@@ -24,39 +25,60 @@ from collections.abc import Iterator
 
 
 def placeholder(name: str) -> type:
-    """A class the reference imports but the harness must never use."""
+    """A stand-in for the function or class ``name`` the reference imports but the harness must not run: it imports
+    (and can be subclassed), and raises as soon as anything calls or instantiates it, or ``apply``s it as an autograd
+    function, so that nothing the harness did not define runs unnoticed."""
 
     def refuse(*args, **kwargs):
-        raise RuntimeError(f"{name} is a stand-in of the parity harness: the reference code used it after all")
+        raise RuntimeError(f"{name} is a stand-in of the parity harness (no PyTorch definition): the reference code "
+                           "ran it")
 
-    return type(name, (), {"__init__": refuse, "__call__": refuse, "apply": staticmethod(refuse)})
+    module, _, short = name.rpartition(".")
+    return type(short, (), {"__init__": refuse, "apply": classmethod(refuse), "__module__": module})
 
 
-class _PlaceholderPackage(importlib.abc.MetaPathFinder, importlib.abc.Loader):
-    """Imports ``prefix`` and its submodules as modules whose every attribute is a :func:`placeholder`."""
+class StandInFinder(importlib.abc.MetaPathFinder, importlib.abc.Loader):
+    """Answers, before the ordinary finders, the imports of the modules in ``defined`` (module -> the names it is given
+    a definition of) and of the ``packages`` replaced whole, submodules included; any other name of theirs is a
+    :func:`placeholder`."""
 
-    def __init__(self, prefix: str) -> None:
-        self.prefix = prefix
+    def __init__(self, defined: dict[str, dict[str, object]], packages: tuple[str, ...]) -> None:
+        self.defined, self.packages = defined, packages
 
-    def find_spec(self, fullname, path, target=None):
-        if fullname == self.prefix or fullname.startswith(self.prefix + "."):
-            return importlib.machinery.ModuleSpec(fullname, self, is_package=True)
-        return None
+    def _claims(self, name: str) -> bool:
+        return name in self.defined or any(name == root or name.startswith(root + ".") for root in self.packages)
+
+    def find_spec(self, name, path=None, target=None):
+        return importlib.machinery.ModuleSpec(name, self, is_package=True) if self._claims(name) else None
 
     def create_module(self, spec):
         module = types.ModuleType(spec.name)
-        module.__path__ = []
-        module.__getattr__ = lambda attribute: self._attribute(spec.name, attribute)
+        module.__path__ = []  # a package, so that ``from mmcv.ops.nms import ...`` resolves here too
+        module.__dict__.update(self.defined.get(spec.name, {}))
+
+        def missing(attribute: str):
+            if attribute.startswith("__"):  # what Python's own machinery asks of a module, e.g. __file__
+                raise AttributeError(attribute)
+            return placeholder(f"{spec.name}.{attribute}")
+
+        module.__getattr__ = missing
         return module
 
-    @staticmethod
-    def _attribute(module: str, attribute: str) -> type:
-        if attribute.startswith("__"):  # what Python's own machinery asks of a module, e.g. __file__
-            raise AttributeError(attribute)
-        return placeholder(f"{module}.{attribute}")
-
     def exec_module(self, module) -> None:
-        pass
+        """Nothing to run: :meth:`create_module` made the module whole."""
+
+
+@contextlib.contextmanager
+def stand_ins(defined: dict[str, dict[str, object]], packages: tuple[str, ...] = ("mmcv.ops",)) -> Iterator[None]:
+    """A :class:`StandInFinder` answers imports while the context lasts; the modules it made are removed on exit."""
+    finder = StandInFinder(defined, packages)
+    sys.meta_path.insert(0, finder)
+    try:
+        yield
+    finally:
+        sys.meta_path.remove(finder)
+        for name in [name for name, module in sys.modules.items() if getattr(module, "__loader__", None) is finder]:
+            del sys.modules[name]
 
 
 def _mmdet3d_models() -> types.ModuleType:
@@ -97,21 +119,19 @@ def _mmdet3d_models() -> types.ModuleType:
 
 @contextlib.contextmanager
 def installed(extra: dict[str, types.ModuleType] | None = None) -> Iterator[None]:
-    """``mmcv.ops``, ``mmdet3d`` and ``extra`` (module name -> module) importable; all removed on exit, with every
-    module imported meanwhile from under them."""
-    finder = _PlaceholderPackage("mmcv.ops")
-    sys.meta_path.insert(0, finder)
-    before = set(sys.modules)
-    models = _mmdet3d_models()
-    modules = {"mmdet3d": types.ModuleType("mmdet3d"), "mmdet3d.models": models, "mmdet3d.models.builder": models,
-               "mmdet3d.core": types.ModuleType("mmdet3d.core"), **(extra or {})}  # fmt: skip
-    modules["mmdet3d"].__path__ = []
-    modules["mmdet3d.core"].bbox3d2result = placeholder("mmdet3d.core.bbox3d2result")
-    sys.modules.update(modules)
-    try:
-        yield
-    finally:
-        sys.meta_path.remove(finder)
-        for name in set(sys.modules) - before:
-            if name.startswith(("mmcv.ops", "mmdet3d", "projects")) or name in modules:
-                sys.modules.pop(name, None)
+    """``mmcv.ops`` placeholders, the ``mmdet3d`` stand-ins and ``extra`` (module name -> module) importable; all
+    removed on exit, with every module imported meanwhile from under them."""
+    with stand_ins({}):
+        before = set(sys.modules)
+        models = _mmdet3d_models()
+        modules = {"mmdet3d": types.ModuleType("mmdet3d"), "mmdet3d.models": models, "mmdet3d.models.builder": models,
+                   "mmdet3d.core": types.ModuleType("mmdet3d.core"), **(extra or {})}  # fmt: skip
+        modules["mmdet3d"].__path__ = []
+        modules["mmdet3d.core"].bbox3d2result = placeholder("mmdet3d.core.bbox3d2result")
+        sys.modules.update(modules)
+        try:
+            yield
+        finally:
+            for name in set(sys.modules) - before:
+                if name.startswith(("mmdet3d", "projects")) or name in modules:
+                    sys.modules.pop(name, None)

@@ -43,6 +43,10 @@ class ProjectionConfig:
     """Channels after the 1x1 reduction applied before sampling."""
     mode: Literal["average", "first"] = "average"
     """``average``: mean over the cameras that see a voxel (paper V1); ``first``: the first such camera (code V2)."""
+    align_corners: bool = False
+    """False: occkit's continuous pixel convention (docs/conventions.md), the image's edges at the feature map's
+    edges. True: the public code's V2 (``BEVTransformV2``), which samples with ``align_corners=True``, so that the
+    image's edges fall on the centres of the first and last feature cells; weights trained by that code expect it."""
 
 
 @dataclass
@@ -53,7 +57,8 @@ class SamplingPlan:
     """
 
     grid: Tensor
-    """``(B * N, L, 1, 2)`` normalised image coordinates for ``grid_sample`` (align_corners=False)."""
+    """``(B * N, L, 1, 2)`` image coordinates normalised by the image size (-1 and 1 at its edges), for
+    ``grid_sample`` with the config's ``align_corners``."""
     target: Tensor
     """``(B * N, L)`` int64 flat row ``b * P + p`` of the voxel each sample feeds; ``B * P`` for padding."""
     weight: Tensor
@@ -169,7 +174,7 @@ class ProjectionViewTransform(nn.Module):
             flat = self.reduce(flat)
         channels = flat.shape[1]
         sampled = F.grid_sample(flat, plan.grid.to(flat.dtype), mode="bilinear", padding_mode="zeros",
-                                align_corners=False)  # (B*N, C, L, 1)
+                                align_corners=self.cfg.align_corners)  # (B*N, C, L, 1)
         sampled = sampled[..., 0].transpose(1, 2) * plan.weight[..., None].to(flat.dtype)  # (B*N, L, C)
         volume = flat.new_zeros(batch * plan.num_voxels + 1, channels)  # last row absorbs padding
         for camera in range(sampled.shape[0]):
