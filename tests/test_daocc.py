@@ -66,12 +66,14 @@ def test_loss_decreases_on_a_fixed_batch(synthetic_batch):
     assert history[-1] < 0.8 * history[0], history
 
 
-def test_lidar_only_variant_has_no_camera_branch(synthetic_batch):
-    model = tiny(image=None).eval()
+def test_lidar_only_variant_has_no_camera_branch_and_trains(synthetic_batch):
+    model = tiny(image=None).train()
     assert model.image_encoder is None and model.view_transform is None
-    batch = synthetic_batch()
+    batch = synthetic_batch(batch_size=1)
     batch.images = None
-    assert model.predict(batch).semantics.shape == (2, 200, 200, 16)
+    sum(model.loss(model(batch), batch).values()).backward()
+    assert not parameters_without_gradient(model)
+    assert model.eval().predict(batch).semantics.shape == (1, 200, 200, 16)
 
 
 def test_failed_cameras_and_empty_lidar(synthetic_batch):

@@ -34,6 +34,9 @@ def test_every_zoo_entry_builds_and_matches_its_yaml(name):
 #: Entry -> what steps its difference.
 STEPPED_ELSEWHERE = {
     "daocc_24e": "nothing to step: the schedule differs, the model is daocc's",
+    "daocc_lidar": "DAOcc without its camera branch: test_daocc steps daocc_tiny's without one",
+    "flashocc_m1": "M0's structure with other widths: flashocc_m0 here, and test_reference_parity_models runs both "
+                   "against the reference",
     "daocc_no_mask": "the unmasked loss: daocc_surroundocc_tiny here, test_losses",
     "daocc_no_detection": "test_daocc (the detachable head), test_export (DAOcc without the head)",
     "daocc_no_range_extension": "another BEV range and grid: daocc_tiny's +-43.2 m here",
