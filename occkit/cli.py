@@ -448,6 +448,45 @@ def _load_trained(args: argparse.Namespace, device):
     return load_trained(args.ckpt, device, overrides=args.set)
 
 
+def _add_model_source(group, parser: argparse.ArgumentParser, ckpt_help: str) -> None:
+    """``--ckpt FILE`` or ``--weights FILE|synthetic`` (in ``group``, which makes them exclusive) and ``--model``."""
+    group.add_argument("--ckpt", type=Path, metavar="FILE", help=ckpt_help)
+    group.add_argument("--weights", metavar="FILE|synthetic",
+                       help="weights without a run: a .safetensors file (e.g. an official checkpoint converted by "
+                            "occkit convert), or synthetic: the weights occkit ships for --model (trained on the "
+                            "synthetic world; see occkit info)")  # fmt: skip
+    parser.add_argument("--model", default=None, metavar="ENTRY",
+                        help="with --weights: the zoo entry that runs them (for a file, default: the entry it was "
+                             "converted for)")  # fmt: skip
+
+
+def _model_source(args: argparse.Namespace, entry: str | None = None):
+    """The ``ModelSource`` of ``--ckpt`` / ``--weights`` (+ ``--model``, or ``entry``), checked; None when neither is
+    given. A shipped entry without weights is refused here, before any other work."""
+    from occkit.model_source import ModelSource
+    from occkit.shipped import SYNTHETIC, card, shipped_entries
+
+    entry = entry if entry is not None else args.model
+    if args.ckpt is None and args.weights is None:
+        if entry is not None:
+            raise UsageError("--model goes with --weights")
+        return None
+    if args.ckpt is not None:
+        input_file(args.ckpt, "--ckpt")
+        if entry is not None:
+            raise UsageError("--model goes with --weights; a checkpoint names its own model (use --config to run "
+                             "it with another experiment)")  # fmt: skip
+        return ModelSource(ckpt=str(args.ckpt))
+    if args.weights == SYNTHETIC:
+        if entry is None:
+            raise UsageError(f"--weights {SYNTHETIC} needs --model ENTRY (shipped: "
+                             f"{', '.join(shipped_entries()) or 'none yet'})")  # fmt: skip
+        card(entry)  # an entry without shipped weights is refused in one line
+    else:
+        input_file(Path(args.weights), "--weights")
+    return ModelSource(weights=args.weights, entry=entry)
+
+
 def _run_train(args: argparse.Namespace) -> int:
     from occkit.outputs import OutputLock
 
@@ -485,14 +524,7 @@ def _train_locked(args: argparse.Namespace) -> int:
 
 # ----------------------------------------------------------------------------------------------------- eval
 def _add_eval(parser: argparse.ArgumentParser) -> None:
-    weights = parser.add_mutually_exclusive_group(required=True)
-    weights.add_argument("--ckpt", type=Path, help="checkpoint (best.pt, step-*.pt)")
-    weights.add_argument("--weights", type=Path, metavar="FILE",
-                         help="weights without a run, e.g. an official checkpoint converted by occkit convert "
-                              "(.safetensors); scored with the experiment of --model or --config")  # fmt: skip
-    parser.add_argument("--model", default=None, metavar="ENTRY",
-                        help="with --weights: the zoo entry whose experiment scores them (default: the entry the "
-                             "file was converted for)")  # fmt: skip
+    _add_model_source(parser.add_mutually_exclusive_group(required=True), parser, "checkpoint (best.pt, step-*.pt)")
     _add_experiment_overrides(parser)
     parser.add_argument("--data", type=Path, default=None, help="dataset root (default: the one it was trained on)")
     parser.add_argument("--split", default=None, help="split to score (default: the run's validation split)")
@@ -519,8 +551,7 @@ def _run_eval(args: argparse.Namespace) -> int:
     # Under torchrun every rank scores its share of the frames; the counts are summed, rank 0 writes the report.
     context = distributed.setup(args.device)
     try:
-        load = _load_trained if args.weights is None else _load_weights
-        model, experiment = load(args, context.device)
+        model, experiment = _load_model(args, context.device)
         dataset = evaluation_dataset(experiment, args.data, args.split or experiment.train.val_split)
         predictions = args.out / "predictions" if args.save_predictions else None
         if context.is_main:
@@ -536,7 +567,7 @@ def _run_eval(args: argparse.Namespace) -> int:
                                     ray_origins=origins, progress=bar.update, mask=mask)  # fmt: skip
         if context.is_main:
             # The keys of occkit eval-preds' report (every frame has its prediction here).
-            result.update(missing_predictions=0, checkpoint=str(args.ckpt or args.weights),
+            result.update(missing_predictions=0, checkpoint=str(_model_source(args, _weights_entry(args))),
                           split=dataset.config.split, root=dataset.config.root)  # fmt: skip
             print(markdown_table(result), end="")
             if result["skipped"]:
@@ -552,35 +583,30 @@ def _run_eval(args: argparse.Namespace) -> int:
 
 def _check_trained_run_args(args: argparse.Namespace) -> None:
     """The options ``eval`` and ``predict`` share, checked before the model is loaded."""
-    if getattr(args, "weights", None) is not None:
-        input_file(args.weights, "--weights")
-        if args.model is not None and args.config is not None:
-            raise UsageError("--model and --config both name the experiment to score --weights with: give one")
-    else:
-        input_file(args.ckpt, "--ckpt")
-        if getattr(args, "model", None) is not None:
-            raise UsageError("--model goes with --weights; a checkpoint names its own model (use --config to run "
-                             "it with another experiment)")
+    if args.weights is not None and args.model is not None and args.config is not None:
+        raise UsageError("--model and --config both name the experiment to run --weights with: give one")
+    _model_source(args, _weights_entry(args))
     if args.data is not None:
         input_folder(args.data, "--data")
     output_folder(args.out, "--out")
     check_device(args.device)
 
 
-def _load_weights(args: argparse.Namespace, device):
-    """``eval --weights``: the model of ``--model`` / ``--config`` (else the entry the file was converted for) with
-    the file's weights, strictly loaded, and its experiment."""
-    from occkit import zoo
-    from occkit.convert import load_weights, read_checkpoint
+def _weights_entry(args: argparse.Namespace) -> str | None:
+    """The experiment that runs ``--weights``: ``--model``, or ``--config`` (a zoo name or YAML)."""
+    return args.model or (args.config if args.weights is not None else None)
 
-    source = args.config or args.model
-    if source is None:
-        source = read_checkpoint(args.weights).metadata.get("entry")
-        if source is None:
-            raise UsageError(f"--weights {args.weights} does not say which model it is: name it with --model ENTRY")
-    experiment = zoo.load_experiment(source, args.set)
-    model = zoo.build_from_config(experiment.architecture, experiment.model)
-    return load_weights(args.weights, model).to(device).eval(), experiment
+
+def _load_model(args: argparse.Namespace, device):
+    """``eval`` / ``predict``: the checkpoint's model (with ``--config``, run by that experiment), or the model of
+    ``--model`` / ``--config`` with ``--weights`` (a file, else the entry it was converted for; or ``synthetic``),
+    strictly loaded; and its experiment."""
+    if args.ckpt is not None:
+        return _load_trained(args, device)
+    try:
+        return _model_source(args, _weights_entry(args)).load(device, args.set)
+    except ValueError as error:
+        raise UsageError(str(error)) from None
 
 
 def _prepare_out(out: Path) -> None:
@@ -591,7 +617,7 @@ def _prepare_out(out: Path) -> None:
 
 # ----------------------------------------------------------------------------------------------------- predict
 def _add_predict(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--ckpt", type=Path, required=True, help="checkpoint (best.pt, step-*.pt)")
+    _add_model_source(parser.add_mutually_exclusive_group(required=True), parser, "checkpoint (best.pt, step-*.pt)")
     _add_experiment_overrides(parser)
     parser.add_argument("--data", type=Path, required=True, help="dataset root (nuScenes layout)")
     parser.add_argument("--split", default="val", help="split to predict: train, val, test, all, ... (default val)")
@@ -615,7 +641,7 @@ def _run_predict(args: argparse.Namespace) -> int:
     lock = OutputLock(args.out, "occkit predict", enabled=context.is_main)
     try:
         lock.acquire()
-        model, experiment = _load_trained(args, context.device)
+        model, experiment = _load_model(args, context.device)
         dataset = evaluation_dataset(experiment, args.data, args.split, labels=False)
         if context.is_main:
             _prepare_out(args.out)
@@ -793,7 +819,7 @@ def _run_bench(args: argparse.Namespace) -> int:
 
 # ----------------------------------------------------------------------------------------------------- robustness
 def _add_robustness(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--ckpt", type=Path, help="checkpoint to score (best.pt, step-*.pt)")
+    _add_model_source(parser.add_mutually_exclusive_group(), parser, "checkpoint to score (best.pt, step-*.pt)")
     parser.add_argument("--data", type=Path, default=None, help="dataset root (default: the one it was trained on)")
     parser.add_argument("--split", default=None, help="split to score (default: the run's validation split)")
     parser.add_argument("--suite", default="default", metavar="default|quick|NAMES",
@@ -834,9 +860,9 @@ def _run_robustness(args: argparse.Namespace) -> int:
     if args.list:
         print(_corruption_table(), end="")
         return 0
-    if args.ckpt is None or args.out is None:
-        raise UsageError("--ckpt and --out are required (or --list)")
-    input_file(args.ckpt, "--ckpt")
+    if (args.ckpt is None and args.weights is None) or args.out is None:
+        raise UsageError("--ckpt (or --weights) and --out are required (or --list)")
+    model = _model_source(args)
     if args.data is not None:
         input_folder(args.data, "--data")
     if args.baseline is not None:
@@ -863,7 +889,7 @@ def _run_robustness(args: argparse.Namespace) -> int:
 
     try:
         with OutputLock(args.out, "occkit robustness"):  # one run at a time writes the cases and the report
-            report = run_robustness(args.ckpt, args.out, data=args.data, split=args.split, suite=args.suite,
+            report = run_robustness(model, args.out, data=args.data, split=args.split, suite=args.suite,
                                     baseline=args.baseline, workers=args.workers, device=device,
                                     rayiou=not args.no_rayiou, seed=args.seed, log=tqdm.write, progress=progress)
     finally:
@@ -891,8 +917,8 @@ def _add_viz(parser: argparse.ArgumentParser) -> None:
     predictions = parser.add_mutually_exclusive_group()
     predictions.add_argument("--pred", type=Path, metavar="DIR",
                              help="folder of <token>.npz predictions (as occkit predict writes them)")
-    predictions.add_argument("--ckpt", type=Path, metavar="FILE", help="predict on the fly with this checkpoint")
-    parser.add_argument("--device", default="cpu", help="where --ckpt's model runs (default cpu)")
+    _add_model_source(predictions, parser, "predict on the fly with this checkpoint")
+    parser.add_argument("--device", default="cpu", help="where the model of --ckpt / --weights runs (default cpu)")
     parser.add_argument("--sweeps", type=integer(0, 100), default=0,
                         help="earlier LiDAR sweeps added to the key frame in the LiDAR overlay (default 0)")
     parser.add_argument("--display-width", type=integer(16, 8192), default=800,
@@ -910,8 +936,7 @@ def _run_viz(args: argparse.Namespace) -> int:
     output_folder(args.out, "--out")
     if args.pred is not None:
         input_folder(args.pred, "--pred")
-    if args.ckpt is not None:
-        input_file(args.ckpt, "--ckpt")
+    model = _model_source(args)
     check_device(args.device)
     width, height = LARGEST_FIGURE_INCHES
     # An RGBA canvas, its PNG encoding and (with --colors) a palette conversion are alive at once.
@@ -920,7 +945,7 @@ def _run_viz(args: argparse.Namespace) -> int:
     config = VizConfig(data=str(args.data), out=str(args.out), split=args.split, version=args.version,
                        frames=args.frames, tokens=tuple(args.token), label_space=args.label_space,
                        pred=None if args.pred is None else str(args.pred),
-                       ckpt=None if args.ckpt is None else str(args.ckpt), device=args.device, sweeps=args.sweeps,
+                       model=model, device=args.device, sweeps=args.sweeps,
                        display_width=args.display_width, dpi=args.dpi, colors=args.colors)  # fmt: skip
     render_frames(config)
     return 0
@@ -940,8 +965,8 @@ def _add_view(parser: argparse.ArgumentParser) -> None:
     predictions = parser.add_mutually_exclusive_group()
     predictions.add_argument("--pred", type=Path, metavar="DIR",
                              help="folder of <token>.npz predictions (as occkit predict writes them)")
-    predictions.add_argument("--ckpt", type=Path, metavar="FILE", help="predict on the fly with this checkpoint")
-    parser.add_argument("--device", default="cpu", help="where --ckpt's model runs (default cpu)")
+    _add_model_source(predictions, parser, "predict on the fly with this checkpoint")
+    parser.add_argument("--device", default="cpu", help="where the model of --ckpt / --weights runs (default cpu)")
     sink = parser.add_mutually_exclusive_group()
     sink.add_argument("--save", type=Path, metavar="FILE.rrd",
                       help="write the recording to FILE.rrd (open it with: rerun FILE.rrd) instead of spawning the "
@@ -964,8 +989,7 @@ def _run_view(args: argparse.Namespace) -> int:
     input_folder(args.data, "--data")
     if args.pred is not None:
         input_folder(args.pred, "--pred")
-    if args.ckpt is not None:
-        input_file(args.ckpt, "--ckpt")
+    model = _model_source(args)
     if args.save is not None:
         output_file(args.save, "--save")
         if args.save.suffix != ".rrd":
@@ -988,7 +1012,7 @@ def _run_view(args: argparse.Namespace) -> int:
                                      '".[viewer]"') from None
     config = ViewConfig(data=str(args.data), split=args.split, version=args.version, scene=args.scene,
                         frames=args.frames, pred=None if args.pred is None else str(args.pred),
-                        ckpt=None if args.ckpt is None else str(args.ckpt), label_space=args.label_space,
+                        model=model, label_space=args.label_space,
                         device=args.device)  # fmt: skip
     server = None
     if args.serve:

@@ -84,7 +84,15 @@ def environment_report() -> dict:
             name: {"classes": list(t.classes), "empty_index": t.empty_index, "ignore_index": t.ignore_index}
             for name, t in TAXONOMIES.items()
         },
+        "shipped_weights": _shipped_weights(),
     }
+
+
+def _shipped_weights() -> dict:
+    """Entry -> the demo-world scores of the weights occkit ships for it (``--weights synthetic``)."""
+    from occkit.shipped import card, shipped_entries
+
+    return {entry: card(entry).scores for entry in shipped_entries()}
 
 
 def format_environment_report(report: dict) -> str:
@@ -116,4 +124,9 @@ def format_environment_report(report: dict) -> str:
     for name, taxonomy in report["taxonomies"].items():
         classes = taxonomy["classes"]
         lines.append(f"  {name:<12} {len(classes)} classes: " + " ".join(f"{i}:{c}" for i, c in enumerate(classes)))
+    shipped = report["shipped_weights"]
+    lines.append("shipped weights (--weights synthetic --model ENTRY; mIoU / IoU on the demo world's held-out scenes):"
+                 if shipped else "shipped weights: none")  # fmt: skip
+    for entry, scores in shipped.items():
+        lines.append(f"  {entry:<22} {100 * scores['miou']:.1f} / {100 * scores['iou']:.1f}")
     return "\n".join(lines)

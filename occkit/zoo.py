@@ -24,6 +24,7 @@ from occkit.config import ConfigError
 from occkit.experiment import Experiment, PaperRow, experiment_yaml
 from occkit.models import da_occ, daocc, flashocc, pretrained
 from occkit.models.base import Architecture, OccupancyModel
+from occkit.shipped import SYNTHETIC, load_shipped
 
 __all__ = ["ARCHITECTURES", "names", "description", "paper_row", "needed_files", "architecture", "model_config",
            "experiment", "build", "build_from_config", "config_yaml", "config_class", "experiment_from_dict",
@@ -108,9 +109,18 @@ def build_from_config(name: str, cfg: Any) -> OccupancyModel:
     return architecture(name).build(cfg)
 
 
-def build(name: str) -> OccupancyModel:
-    """A freshly initialised model of the zoo entry ``name``."""
-    return build_from_config(*model_config(name))
+def build(name: str, weights: str | Path | None = None) -> OccupancyModel:
+    """The model of the zoo entry ``name``: freshly initialised, or with ``weights``: ``"synthetic"`` for the
+    weights occkit ships for it (:mod:`occkit.shipped`, checked against their card), or a weights file in occkit's
+    names (``.safetensors`` from ``occkit convert``), loaded strictly."""
+    model = build_from_config(*model_config(name))
+    if weights is None:
+        return model
+    if str(weights) == SYNTHETIC:
+        return load_shipped(model, name)
+    from occkit.convert import load_weights
+
+    return load_weights(weights, model)
 
 
 def experiment_from_dict(data: Any, where: str = "experiment", overrides: Sequence[str] = ()) -> Experiment:

@@ -120,9 +120,10 @@ def test_viz_draws_surroundocc_labels_and_predictions_in_the_lidar_frame(world, 
     assert {"bev_gt", "voxels_gt", "compare", "voxels_pred", "cameras_gt", "cameras_pred"} <= set(frame["files"])
     assert set(frame["scores"]) == {"miou", "iou"}
     with pytest.raises(ValueError, match="predicts surroundocc labels, not occ3d"):
+        from occkit.model_source import ModelSource
         from occkit.viz.run import VizConfig, render_frames
 
-        render_frames(VizConfig(data=str(world), out=str(tmp_path / "v2"), ckpt=str(run / "best.pt"),
+        render_frames(VizConfig(data=str(world), out=str(tmp_path / "v2"), model=ModelSource(ckpt=str(run / "best.pt")),
                                 label_space="occ3d"), progress=lambda _: None)  # fmt: skip
 
 

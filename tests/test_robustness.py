@@ -450,9 +450,9 @@ def test_a_cached_case_file_of_another_shape_is_computed_again(tmp_path):
 
 def test_a_folder_where_a_case_file_goes_is_one_error_line_before_any_work(world, tmp_path, capsys, monkeypatch):
     from occkit.cli import main
-    from occkit.robustness import run
+    from occkit.model_source import ModelSource
 
-    monkeypatch.setattr(run, "load_trained", lambda *_: pytest.fail("the paths are checked before the model loads"))
+    monkeypatch.setattr(ModelSource, "load", lambda *_: pytest.fail("the paths are checked before the model loads"))
     checkpoint = _checkpoint(world, tmp_path / "model.pt")
     out = tmp_path / "robustness"
     command = ["robustness", "--ckpt", str(checkpoint), "--out", str(out), "--suite", "fog:2", "--no-rayiou",

@@ -3,7 +3,8 @@
 A cached case is reused only when its fingerprint equals the one the run would give it now. The fingerprint holds
 everything the scores depend on:
 
-- the model: the checkpoint's SHA-256 (weights and the saved experiment);
+- the model: the SHA-256 of its file (a checkpoint: weights and the saved experiment; a weights file, with the zoo
+  entry that runs it);
 - the data it is scored on: the evaluation dataset's settings (root, label space and label folder, cameras, sweeps,
   image transform, ...), the nuScenes tables (:func:`~occkit.data.index.tables_key`), a prebuilt index file's
   SHA-256, the split's key frames in order, and the **content** of every label file of the split;
@@ -28,7 +29,7 @@ import hashlib
 import json
 from importlib import metadata
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from occkit import __version__
 from occkit.data.corruptions import CORRUPTIONS
@@ -37,6 +38,9 @@ from occkit.data.index import tables_key
 from occkit.errors import InputError
 from occkit.outputs import write_atomic
 from occkit.robustness.suite import Case
+
+if TYPE_CHECKING:  # the engine is imported by the run, not by the cache
+    from occkit.model_source import ModelSource
 
 __all__ = ["CASES_FOLDER", "cache_context", "case_fingerprint", "case_path", "check_case_paths", "read_cached",
            "write_case", "labels_digest"]  # fmt: skip
@@ -79,16 +83,21 @@ def _library_version(name: str) -> str | None:
         return None
 
 
-def cache_context(checkpoint: str | Path, dataset: OccupancyDataset, seed: int, rayiou: bool) -> dict[str, Any]:
-    """What every case of a run depends on (see the module's docstring): ``checkpoint`` scored on the clean
-    ``dataset`` (the evaluation split, no corruption), with the corruptions' ``seed``, RayIoU or not."""
+def cache_context(
+    model: ModelSource | str | Path, dataset: OccupancyDataset, seed: int, rayiou: bool
+) -> dict[str, Any]:
+    """What every case of a run depends on (see the module's docstring): ``model`` (a checkpoint's path, or where
+    the model comes from) scored on the clean ``dataset`` (the evaluation split, no corruption), with the
+    corruptions' ``seed``, RayIoU or not."""
+    model_file, entry = (Path(model), None) if isinstance(model, (str, Path)) else (model.file, model.entry)
     config = dataset.config
     root = Path(config.root).resolve()
     settings = {key: value for key, value in dataclasses.asdict(config).items() if key not in _RUN_SETTINGS}
     settings["root"] = str(root)
     tokens = hashlib.sha256("\n".join(f"{r.scene}/{r.token}" for r in dataset.records).encode()).hexdigest()
     context = {
-        "checkpoint_sha256": _hash_file(Path(checkpoint)).hexdigest(),
+        "model_sha256": _hash_file(model_file).hexdigest(),
+        "model_entry": entry,
         "data": str(root),
         "dataset": settings,
         "tables": tables_key(root, config.version, 0),

@@ -3,7 +3,7 @@
 Each case (the clean data, or a corruption at a level) is one pass of :func:`~occkit.engine.evaluate.evaluate_model`
 over the split with the corruption set in the dataset config. Its scores are written to ``OUT/cases/<case>.json``
 as soon as it finishes, with a fingerprint of everything they depend on (:mod:`~occkit.robustness.cache`: the
-checkpoint's bytes, the data settings, tables and label files, the split, the seed, the case, the occkit version);
+model file's bytes, the data settings, tables and label files, the split, the seed, the case, the occkit version);
 a run started again reuses every case whose fingerprint matches and computes the rest, so an interrupted run loses
 at most the case it was in.
 
@@ -23,8 +23,9 @@ from typing import Any
 
 from occkit.data.corruptions import CORRUPTIONS
 from occkit.data.dataset import OccupancyDataset
-from occkit.engine.evaluate import dataset_ray_origins, evaluate_model, evaluation_dataset, load_trained
+from occkit.engine.evaluate import dataset_ray_origins, evaluate_model, evaluation_dataset
 from occkit.errors import InputError
+from occkit.model_source import ModelSource
 from occkit.outputs import write_atomic
 from occkit.robustness.cache import (
     CASES_FOLDER,
@@ -61,7 +62,7 @@ def _check_report_paths(out: Path) -> None:
 
 
 def run_robustness(
-    checkpoint: str | Path,
+    model: ModelSource | str | Path,
     out: str | Path,
     data: str | Path | None = None,
     split: str | None = None,
@@ -74,13 +75,13 @@ def run_robustness(
     log: Callable[[str], None] = print,
     progress: Callable[[int, int, str], None] | None = None,
 ) -> dict[str, Any]:
-    """Score ``checkpoint`` on the clean split and under every corruption of ``suite`` that applies to it.
+    """Score ``model`` on the clean split and under every corruption of ``suite`` that applies to it.
 
     Args:
-        checkpoint: an occkit checkpoint.
+        model: where the model comes from: an occkit checkpoint (its path), or weights for a zoo entry.
         out: output folder: ``robustness.json``, ``robustness.md``, ``resilience.png``, ``severity.png`` and the
             per-case cache ``cases/``.
-        data, split: the dataset root and split (default: the checkpoint's data and validation split).
+        data, split: the dataset root and split (default: the model's data and validation split).
         suite: ``default``, ``quick`` or ``NAME[:LEVEL],...`` (:func:`~occkit.robustness.suite.parse_suite`).
         baseline: the ``robustness.json`` of a baseline model, for the corruption errors (CE, mCE).
         workers: data loading processes.
@@ -106,7 +107,8 @@ def run_robustness(
             baseline_report["corruptions"]  # noqa: B018 - the key that makes it a robustness report
         except (OSError, ValueError, KeyError, TypeError) as error:
             raise ValueError(f"--baseline {baseline}: not a robustness.json of occkit robustness ({error})") from error
-    model, experiment = load_trained(checkpoint, device)
+    source = model if isinstance(model, ModelSource) else ModelSource(ckpt=str(model))
+    model, experiment = source.load(device)
     clean_data = evaluation_dataset(experiment, data, split or experiment.train.val_split)
     config = dataclasses.replace(clean_data.config, seed=seed)
     inputs = inference_inputs(model, experiment.model)
@@ -118,7 +120,7 @@ def run_robustness(
             skipped[case.corruption]["levels"].append(case.severity)
     cases = [CLEAN, *(c for c in cases if c.corruption not in skipped)]  # a corruption applies at every level or none
     origins = dataset_ray_origins(clean_data) if rayiou and clean_data.space.rayiou else None
-    context = cache_context(checkpoint, clean_data, seed, origins is not None)
+    context = cache_context(source, clean_data, seed, origins is not None)
 
     results: dict[Case, dict] = {}
     todo = []
@@ -153,7 +155,7 @@ def run_robustness(
         log(f"{case.label}: {_scores(result)} ({result['seconds']:.0f} s)")
 
     report = _report(results, list(skipped.values()), baseline_report, {
-        "checkpoint": str(checkpoint), "model": experiment.architecture, "data": str(config.root),
+        "checkpoint": str(source), "model": experiment.architecture, "data": str(config.root),
         "split": config.split, "frames": len(clean_data), "suite": suite, "seed": seed,
         "inputs": sorted(inputs), "baseline": None if baseline is None else str(baseline),
         "seconds": time.perf_counter() - started, "seconds_computed": sum(r["seconds"] for r in results.values()

@@ -36,6 +36,7 @@ import uuid
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import rerun as rr
@@ -62,6 +63,9 @@ from occkit.viz.errors import (
 )
 from occkit.viz.run import Predictor, folder_predictor
 from occkit.viz.serving import ViewerServer
+
+if TYPE_CHECKING:  # the engine (models, zoo) is imported only when a model predicts
+    from occkit.model_source import ModelSource
 
 __all__ = [
     "FRAME",
@@ -394,18 +398,18 @@ class ViewConfig:
     """Record the scene's first ``frames`` key frames; None: all."""
     pred: str | None = None
     """Folder of ``<token>.npz`` predictions (as ``occkit predict`` writes them)."""
-    ckpt: str | None = None
-    """Checkpoint to predict with instead of ``pred``."""
+    model: ModelSource | None = None
+    """A model to predict with instead of ``pred``: a checkpoint, or weights for a zoo entry."""
     label_space: str | None = None
-    """Label space of the ground truth and predictions; None: the checkpoint's, or ``occ3d``."""
+    """Label space of the ground truth and predictions; None: the model's, or ``occ3d``."""
     device: str = "cpu"
-    """Where the checkpoint's model runs."""
+    """Where the model runs."""
 
     def __post_init__(self) -> None:
         if self.frames is not None and self.frames < 1:
             raise ValueError(f"frames must be at least 1, got {self.frames}")
-        if self.pred is not None and self.ckpt is not None:
-            raise ValueError("give predictions as a folder (pred) or a checkpoint (ckpt), not both")
+        if self.pred is not None and self.model is not None:
+            raise ValueError("give predictions as a folder (pred) or a model to predict with, not both")
 
 
 @dataclass(frozen=True, eq=False)
@@ -441,7 +445,7 @@ def _name_list(names: Sequence[str], limit: int = 12) -> str:
     return shown + (f", ... ({len(names) - limit} more)" if len(names) > limit else "")
 
 
-def _checkpoint_predictor(config: ViewConfig, model: torch.nn.Module, experiment) -> Predictor:
+def _model_predictor(config: ViewConfig, model: torch.nn.Module, experiment) -> Predictor:
     """The model's predictions by token on its own data settings; a temporal model keeps its stream's memory
     across calls, so the frames must come in time order."""
     from occkit.engine.evaluate import evaluation_dataset, stream_memory
@@ -474,15 +478,13 @@ def open_scene(config: ViewConfig) -> Scene:
         raise FileNotFoundError(f"data root {root} does not exist")
     model = experiment = None
     space = label_space(config.label_space or "occ3d")
-    if config.ckpt is not None:
-        from occkit.engine.evaluate import load_trained
-
-        if not Path(config.ckpt).is_file():
-            raise FileNotFoundError(f"checkpoint {config.ckpt} does not exist")
-        model, experiment = load_trained(config.ckpt, config.device)
+    if config.model is not None:
+        if not config.model.file.is_file():
+            raise FileNotFoundError(f"{config.model.file} does not exist")
+        model, experiment = config.model.load(config.device)
         space = label_space(experiment.data.label_space)
         if config.label_space is not None and config.label_space != space.name:
-            raise ValueError(f"checkpoint {config.ckpt} predicts {space.name} labels, not {config.label_space}")
+            raise ValueError(f"{config.model} predicts {space.name} labels, not {config.label_space}")
     # A scene name is unique across the splits: a named scene is looked up in all of them ("all"), so that it needs
     # no --split, and the split only picks the default scene.
     if config.scene is not None:
@@ -505,8 +507,8 @@ def open_scene(config: ViewConfig) -> Scene:
         predict = folder_predictor(Path(config.pred), [record.token for record in records], space)
         prediction_name = f"prediction ({Path(config.pred).name})"
     elif model is not None:
-        predict = _checkpoint_predictor(config, model, experiment)
-        prediction_name = f"prediction ({Path(config.ckpt).resolve().parent.name})"
+        predict = _model_predictor(config, model, experiment)
+        prediction_name = f"prediction ({config.model.label})"
     return Scene(name, dataset, indices, predict, prediction_name)
 
 

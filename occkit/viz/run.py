@@ -14,6 +14,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
@@ -33,6 +34,9 @@ from occkit.viz.cameras import CameraSet, lidar_camera_figure, lidar_points_in_e
 from occkit.viz.errors import comparison_figure, format_scores, frame_scores
 from occkit.viz.page import PageImage, Section, write_page
 from occkit.viz.voxels import voxel_figure
+
+if TYPE_CHECKING:  # the engine (models, zoo) is imported only when a model predicts
+    from occkit.model_source import ModelSource
 
 __all__ = ["VizConfig", "render_frames"]
 
@@ -62,13 +66,13 @@ class VizConfig:
     """Sample tokens to render instead of spread frames."""
     pred: str | None = None
     """Folder of ``<token>.npz`` predictions (as ``occkit predict`` writes them)."""
-    ckpt: str | None = None
-    """Checkpoint to predict with on the fly instead of ``pred``."""
+    model: ModelSource | None = None
+    """A model to predict with on the fly instead of ``pred``: a checkpoint, or weights for a zoo entry."""
     label_space: str | None = None
-    """Label space of the ground truth and predictions (:mod:`occkit.label_space`); None: the checkpoint's, or
-    ``occ3d``. A checkpoint of another label space is refused."""
+    """Label space of the ground truth and predictions (:mod:`occkit.label_space`); None: the model's, or
+    ``occ3d``. A model of another label space is refused."""
     device: str = "cpu"
-    """Where the checkpoint's model runs."""
+    """Where the model runs."""
     sweeps: int = 0
     """Earlier LiDAR sweeps added to the key frame's points in the LiDAR overlay."""
     display_width: int = 800
@@ -87,8 +91,8 @@ class VizConfig:
             raise ValueError(f"display_width must be at least 16 pixels, got {self.display_width}")
         if self.colors is not None and not MIN_PALETTE_COLORS <= self.colors <= 256:
             raise ValueError(f"colors must lie in {MIN_PALETTE_COLORS}..256, got {self.colors}")
-        if self.pred is not None and self.ckpt is not None:
-            raise ValueError("give predictions as a folder (pred) or a checkpoint (ckpt), not both")
+        if self.pred is not None and self.model is not None:
+            raise ValueError("give predictions as a folder (pred) or a model to predict with, not both")
 
 
 def _pick(records: list[FrameRecord], config: VizConfig) -> list[int]:
@@ -144,17 +148,17 @@ def folder_predictor(folder: Path, tokens: Sequence[str], space: LabelSpace) -> 
     return lambda token: read_prediction(files[token], space)
 
 
-def _checkpoint_predictor(config: VizConfig) -> tuple[Predictor, LabelSpace]:
-    """The checkpoint's predictions by token, and its label space."""
+def _model_predictor(config: VizConfig) -> tuple[Predictor, LabelSpace]:
+    """The model's predictions by token, and its label space."""
     from occkit.data.collate import collate
-    from occkit.engine.evaluate import evaluation_dataset, load_trained
+    from occkit.engine.evaluate import evaluation_dataset
 
-    if not Path(config.ckpt).is_file():
-        raise FileNotFoundError(f"checkpoint {config.ckpt} does not exist")
-    model, experiment = load_trained(config.ckpt, config.device)
+    if not config.model.file.is_file():
+        raise FileNotFoundError(f"{config.model.file} does not exist")
+    model, experiment = config.model.load(config.device)
     space = label_space(experiment.data.label_space)
     if config.label_space is not None and config.label_space != space.name:
-        raise ValueError(f"checkpoint {config.ckpt} predicts {space.name} labels, not {config.label_space}")
+        raise ValueError(f"{config.model} predicts {space.name} labels, not {config.label_space}")
     experiment = dataclasses.replace(experiment, data=dataclasses.replace(experiment.data, version=config.version))
     dataset = evaluation_dataset(experiment, config.data, config.split, labels=False)
     position = {record.token: i for i, record in enumerate(dataset.records)}
@@ -245,11 +249,10 @@ def render_frames(config: VizConfig, progress: Callable[[str], None] = print) ->
     root = Path(config.data)
     if not root.is_dir():
         raise FileNotFoundError(f"data root {root} does not exist")
-    # Predictions are named after their folder, or the run folder of the checkpoint (e.g. runs/demo/daocc_tiny).
+    # Predictions are named after their folder, or the model (a checkpoint's run folder, e.g. runs/demo/daocc_tiny).
     predict, pred_name, space = None, "prediction", label_space(config.label_space or "occ3d")
-    if config.ckpt is not None:
-        (predict, space), pred_name = _checkpoint_predictor(config), \
-            f"prediction ({Path(config.ckpt).resolve().parent.name})"  # fmt: skip
+    if config.model is not None:
+        (predict, space), pred_name = _model_predictor(config), f"prediction ({config.model.label})"
     common = {"root": str(root), "version": config.version, "split": config.split, "boxes": False,
               "label_space": space.name}  # fmt: skip
     listing = OccupancyDataset(DatasetConfig(**common, cameras=(), sweeps=-1, occupancy=False))
@@ -276,7 +279,7 @@ def render_frames(config: VizConfig, progress: Callable[[str], None] = print) ->
         sections.append(Section(f"{entry['scene']} / {entry['token']}", text, tuple(images)))
         frames.append(entry)
         progress(f"[viz] {number}/{len(picks)} {entry['token']}: {len(images)} images")
-    source = config.pred or config.ckpt
+    source = config.pred or (None if config.model is None else str(config.model))
     intro = (f"{len(frames)} frame(s) of split {config.split} of {root} ({config.version})"
              + (f", predictions from {source}" if source else "") + ".")  # fmt: skip
     pages = write_page(config.out, "occkit viz", intro, sections)

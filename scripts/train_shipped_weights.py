@@ -1,0 +1,136 @@
+"""Train the weights occkit ships for its CPU-sized entries, and write them with their cards into occkit/weights/.
+
+    python scripts/train_shipped_weights.py --entry da_occ_tiny [--entry ...] [--runs runs/shipped]
+        [--world data/shipped-world] [--demo-data data/demo] [--epochs 30] [--write]
+
+For each entry: the training world (:data:`TRAIN_WORLD`, a seed other than the demo's) is written if absent; the
+entry's CPU recipe trains on it for ``--epochs`` epochs, validating on its held-out scenes every 2 epochs and saving a
+checkpoint every 200 steps, and a rerun resumes from the newest checkpoint (a run may span sessions, and a GPU runs
+it with ``--device cuda``). With ``--write``, the last weights are rounded to half precision, scored on the demo
+world's held-out scenes (mIoU, IoU, RayIoU, per class) and written with their card (:mod:`occkit.shipped`): the
+world, steps, training time (summed from the run log's throughput, so resumed runs count only their own steps), the
+device, this command, the scores, the curve of held-out mIoU over the run and whether it converged (less than 0.5
+mIoU gained over the last fifth of the run).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import shlex
+import sys
+from pathlib import Path
+
+import torch
+
+from occkit import zoo
+from occkit.demo import DEMO_WORLD
+from occkit.engine.evaluate import dataset_ray_origins, evaluate_model, evaluation_dataset, load_trained
+from occkit.engine.train import train
+from occkit.experiment import replace_train
+from occkit.shipped import write_shipped
+from occkit.sim.generate import SimConfig, simulate_dataset
+
+#: The world the shipped weights train on: the demo world's size and image size with 16 scenes (4 held out), and a
+#: seed other than the demo's, so that the demo scores them on scenes they never saw.
+TRAIN_WORLD = {"scenes": 16, "frames": 24, "image_size": (400, 225), "seed": 2026}
+ENTRIES = ("daocc_tiny", "da_occ_tiny", "flashocc_tiny")
+#: A run has converged when its held-out mIoU gained less than this over the last fifth of its steps.
+CONVERGED_GAIN = 0.005
+
+
+def ensure_world(root: Path, world: dict) -> None:
+    if not (root / "sim_config.yaml").is_file():
+        print(f"writing the world {world} to {root}", flush=True)
+        simulate_dataset(SimConfig(**world), root)
+
+
+def run_experiment(entry: str, world: Path, epochs: int, device: str | None):
+    experiment = zoo.experiment(entry)
+    experiment = dataclasses.replace(experiment, data=dataclasses.replace(experiment.data, root=str(world)))
+    return replace_train(experiment, epochs=epochs, val_every=2, checkpoint_every=200,
+                         workers=experiment.train.workers if device != "cpu" else 1)  # fmt: skip
+
+
+def curve(run: Path) -> list[dict[str, float]]:
+    """Held-out mIoU and IoU by step, from the run's ``val.jsonl``."""
+    path = run / "val.jsonl"
+    rows = [json.loads(line) for line in path.read_text().splitlines() if line.strip()] if path.is_file() else []
+    return [{"step": row["step"], "miou": row["miou"], "iou": row["iou"]} for row in rows]
+
+
+def converged(points: list[dict[str, float]]) -> tuple[bool, float]:
+    """Whether the mIoU gained less than :data:`CONVERGED_GAIN` over the last fifth of the run, and that gain."""
+    if len(points) < 2:
+        return False, float("nan")
+    last = points[-1]["step"]
+    start = next(point for point in points if point["step"] >= 0.8 * last)
+    gain = points[-1]["miou"] - (start["miou"] if start is not points[-1] else points[-2]["miou"])
+    return gain < CONVERGED_GAIN, gain
+
+
+def training_seconds(run: Path, batch_size: int) -> float:
+    """The run's training time from its log: the steps of each logging interval over that interval's throughput."""
+    rows = [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines() if line.strip()]
+    seconds, previous = 0.0, 0
+    for row in rows:
+        if row.get("samples_per_s"):
+            seconds += (row["step"] - previous) * batch_size / row["samples_per_s"]
+        previous = row["step"]
+    return seconds
+
+
+def package(entry: str, run: Path, demo: Path, world: dict, device: str, command: str, out: Path) -> None:
+    checkpoint = sorted(run.glob("step-*.pt"))[-1]
+    model, experiment = load_trained(checkpoint, device)
+    with torch.no_grad():  # the card scores what is shipped: the weights at half precision
+        for tensor in model.state_dict().values():
+            if tensor.is_floating_point():
+                tensor.copy_(tensor.half().float())
+    dataset = evaluation_dataset(experiment, demo, "val")
+    scores = evaluate_model(model, dataset, batch_size=1, workers=0, ray_origins=dataset_ray_origins(dataset))
+    points = curve(run)
+    done, gain = converged(points)
+    steps = int(checkpoint.stem.removeprefix("step-"))
+    notes = (f"converged: {100 * gain:+.2f} mIoU over the last fifth of the run" if done else
+             f"not converged: {100 * gain:+.2f} mIoU over the last fifth of the run")  # fmt: skip
+    card = write_shipped(model, {
+        "entry": entry, "world": {**world, "image_size": list(world["image_size"])}, "steps": steps,
+        "train_seconds": round(training_seconds(run, experiment.train.batch_size), 1), "device": device,
+        "command": command, "curve": points, "notes": notes,
+        "scores": {"miou": scores["miou"], "iou": scores["iou"], "rayiou": scores.get("rayiou"),
+                   "per_class": scores["per_class_iou"]},
+    }, out)  # fmt: skip
+    print(f"{entry}: {steps} steps, demo held-out mIoU {100 * scores['miou']:.1f}, IoU {100 * scores['iou']:.1f}; "
+          f"{notes}; wrote {out / entry}.safetensors ({card.sha256[:12]})")  # fmt: skip
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--entry", action="append", choices=ENTRIES, help="entry to train (repeatable; default all)")
+    parser.add_argument("--runs", type=Path, default=Path("runs/shipped"), help="run folders (default runs/shipped)")
+    parser.add_argument("--world", type=Path, default=Path("data/shipped-world"), help="training world")
+    parser.add_argument("--demo-data", type=Path, default=Path("data/demo"), help="the demo world, scored on")
+    parser.add_argument("--epochs", type=int, default=30, help="epochs of the training world (default 30)")
+    parser.add_argument("--device", default="cpu", help="cpu or cuda (default cpu)")
+    parser.add_argument("--write", action="store_true", help="score the last weights and write them with a card")
+    parser.add_argument("--out", type=Path, default=Path(__file__).resolve().parents[1] / "occkit" / "weights")
+    args = parser.parse_args()
+    ensure_world(args.world, TRAIN_WORLD)
+    command = "python scripts/train_shipped_weights.py " + shlex.join(sys.argv[1:])
+    threads = torch.get_num_threads()
+    device = f"{args.device} ({threads} threads)" if args.device == "cpu" else torch.cuda.get_device_name()
+    for entry in args.entry or ENTRIES:
+        experiment = run_experiment(entry, args.world, args.epochs, args.device)
+        run = train(experiment, args.runs / entry, resume="auto", allow_changes=("train.workers",),
+                    device=args.device)  # fmt: skip
+        print(f"{entry}: trained to step {run.steps}", flush=True)
+        if args.write:
+            ensure_world(args.demo_data, DEMO_WORLD)
+            package(entry, args.runs / entry, args.demo_data, TRAIN_WORLD, device, command, args.out)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,131 @@
+"""Shipped weights: written at half precision with a card, checked against the card's hash on every load, and taken by
+``zoo.build(weights="synthetic")`` and by every command that runs a model (``--weights synthetic --model ENTRY``).
+
+The weights here are a random model's, written into a temporary folder that stands in for the package's; the
+trained files and their scores are checked by test_shipped_scores.py.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+import torch
+
+from occkit import shipped, zoo
+from occkit.cli import main
+from occkit.config import ConfigError
+from occkit.model_source import ModelSource
+
+ENTRY = "flashocc_tiny"
+WORLD = {"seed": 5, "scenes": 2, "frames": 2, "image_size": [176, 99]}
+
+
+def card_fields(entry: str = ENTRY) -> dict:
+    return {"entry": entry, "world": WORLD, "steps": 3, "train_seconds": 1.5, "device": "cpu, 1 thread",
+            "command": "pytest", "scores": {"miou": 0.0, "iou": 0.0, "rayiou": None, "per_class": {}}}  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def weights(tmp_path_factory) -> tuple[Path, torch.nn.Module]:
+    """A folder with random weights of ``flashocc_tiny`` and their card, and the model they came from."""
+    folder = tmp_path_factory.mktemp("weights")
+    torch.manual_seed(0)
+    model = zoo.build(ENTRY)
+    shipped.write_shipped(model, card_fields(), folder)
+    return folder, model
+
+
+@pytest.fixture
+def installed(weights, monkeypatch) -> Path:
+    """The temporary folder in place of the package's."""
+    monkeypatch.setattr(shipped, "weights_folder", lambda: weights[0])
+    return weights[0]
+
+
+def test_weights_are_stored_at_half_precision_and_load_into_the_float_model(weights):
+    folder, model = weights
+    card = shipped.card(ENTRY, folder)
+    assert card.sha256 == __import__("hashlib").sha256((folder / f"{ENTRY}.safetensors").read_bytes()).hexdigest()
+    assert card.world == WORLD and card.occkit_version
+    assert (folder / f"{ENTRY}.safetensors").stat().st_size < 0.6 * 4 * sum(p.numel() for p in model.parameters())
+    loaded = shipped.load_shipped(zoo.build(ENTRY), ENTRY, folder)
+    for key, value in model.state_dict().items():
+        expected = value.half().float() if value.is_floating_point() else value
+        assert torch.equal(loaded.state_dict()[key], expected), key
+    assert next(loaded.parameters()).dtype == torch.float32
+
+
+def test_zoo_build_takes_the_shipped_weights(installed, weights):
+    model = zoo.build(ENTRY, weights="synthetic")
+    reference = weights[1].state_dict()["occupancy_head.predictor.2.weight"].half().float()
+    assert torch.equal(model.state_dict()["occupancy_head.predictor.2.weight"], reference)
+
+
+def test_a_file_other_than_its_cards_is_refused(weights, tmp_path):
+    folder = tmp_path / "changed"
+    folder.mkdir()
+    for path in weights[0].iterdir():
+        (folder / path.name).write_bytes(path.read_bytes())
+    data = bytearray((folder / f"{ENTRY}.safetensors").read_bytes())
+    data[-1] ^= 1
+    (folder / f"{ENTRY}.safetensors").write_bytes(bytes(data))
+    with pytest.raises(ConfigError, match="not the file its card describes"):
+        shipped.load_shipped(zoo.build(ENTRY), ENTRY, folder)
+
+
+def test_an_entry_without_shipped_weights_names_those_with(installed):
+    with pytest.raises(ConfigError, match=f"no trained weights for daocc_tiny .*has: {ENTRY}"):
+        zoo.build("daocc_tiny", weights="synthetic")
+
+
+def test_the_model_source_names_its_file_and_label(installed):
+    source = ModelSource(weights="synthetic", entry=ENTRY)
+    assert source.file == installed / f"{ENTRY}.safetensors"
+    assert source.label == f"{ENTRY}, synthetic weights"
+    with pytest.raises(ValueError, match="per zoo entry"):
+        ModelSource(weights="synthetic")
+    with pytest.raises(ValueError, match="exactly one"):
+        ModelSource()
+
+
+def test_cli_synthetic_weights_need_a_shipped_model(installed, tmp_path, capsys):
+    out = tmp_path / "p"
+    assert main(["predict", "--weights", "synthetic", "--data", str(tmp_path), "--out", str(out)]) == 2
+    assert "--weights synthetic needs --model ENTRY (shipped: flashocc_tiny)" in capsys.readouterr().err
+    assert main(["predict", "--weights", "synthetic", "--model", "da_occ_tiny", "--data", str(tmp_path),
+                 "--out", str(out)]) == 2  # fmt: skip
+    assert "occkit ships no trained weights for da_occ_tiny" in capsys.readouterr().err
+    assert main(["predict", "--ckpt", str(tmp_path / "x.pt"), "--model", ENTRY, "--data", str(tmp_path),
+                 "--out", str(out)]) == 2  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def world(tmp_path_factory) -> Path:
+    """2 scenes x 2 key frames (scene-0002 is the val split), six cameras."""
+    from occkit.sim.generate import SimConfig, simulate_dataset
+
+    root = tmp_path_factory.mktemp("world") / "data"
+    simulate_dataset(SimConfig(scenes=2, frames=2, seed=5, image_size=(352, 198)), root)
+    return root
+
+
+def test_every_command_that_runs_a_model_takes_the_shipped_weights(installed, world, tmp_path):
+    model = ["--weights", "synthetic", "--model", ENTRY]
+    assert main(["predict", *model, "--data", str(world), "--out", str(tmp_path / "pred"), "--workers", "0"]) == 0
+    predictions = sorted((tmp_path / "pred").glob("*.npz"))
+    assert len(predictions) == 2
+    assert main(["eval", *model, "--data", str(world), "--out", str(tmp_path / "eval"), "--workers", "0",
+                 "--no-rayiou"]) == 0  # fmt: skip
+    metrics = json.loads((tmp_path / "eval" / "metrics.json").read_text())
+    assert metrics["frames"] == 2 and metrics["checkpoint"] == f"synthetic ({ENTRY})"
+    assert main(["viz", *model, "--data", str(world), "--frames", "1", "--out", str(tmp_path / "viz")]) == 0
+    index = json.loads((tmp_path / "viz" / "index.json").read_text())
+    assert index["predictions"] == f"synthetic ({ENTRY})" and "compare" in index["frames"][0]["files"]
+    assert main(["view", *model, "--data", str(world), "--frames", "1", "--save", str(tmp_path / "scene.rrd")]) == 0
+    assert (tmp_path / "scene.rrd").stat().st_size > 0
+    assert main(["robustness", *model, "--data", str(world), "--out", str(tmp_path / "rob"), "--suite", "fog:1",
+                 "--no-rayiou", "--workers", "0"]) == 0  # fmt: skip
+    report = json.loads((tmp_path / "rob" / "robustness.json").read_text())
+    assert report["checkpoint"] == f"synthetic ({ENTRY})"
