@@ -217,7 +217,6 @@ def load_trained(
     return model.eval(), experiment
 
 
-
 def evaluation_dataset(experiment: Experiment, root: str | Path | None, split: str, labels: bool = True):
     """The experiment's data settings on another root/split, without augmentation (and without history frames: a
     temporal model is streamed, :func:`stream_memory`)."""
