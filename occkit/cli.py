@@ -669,10 +669,11 @@ def _add_demo(parser: argparse.ArgumentParser) -> None:
 
 
 def _run_demo(args: argparse.Namespace) -> int:
-    from occkit.demo import DEMO_MODELS, run_demo
+    from occkit.demo import DEMO_MODELS, check_world, run_demo
 
     output_folder(args.out, "--out")
     output_folder(args.data, "--data")
+    check_world(args.data)  # before any work: another world is refused, never written into
     models = None if args.steps is None else {name: args.steps for name in DEMO_MODELS}
     report = run_demo(args.out, args.data, models)
     print(f"report: {report}")
@@ -1084,7 +1085,8 @@ COMMANDS: dict[str, Command] = {
             _add_viz, _run_viz),
     "view": ("one scene in rerun's interactive 3D viewer: cameras, LiDAR, boxes, trajectory, occupancy, predictions "
              "and their errors on a timeline", _add_view, _run_view),
-    "demo": ("the whole system on a laptop: synthetic world, train two tiny models, evaluate, render, report",
+    "demo": ("the whole system on a laptop: synthetic world, train three tiny models (one per family), evaluate, "
+             "render, report",
              _add_demo, _run_demo),
 }
 

@@ -24,6 +24,7 @@ from occkit import zoo
 from occkit.data.collate import collate
 from occkit.engine.evaluate import dataset_ray_origins, evaluate_model, evaluation_dataset, load_trained
 from occkit.engine.train import train
+from occkit.errors import UsageError
 from occkit.experiment import replace_train
 from occkit.figure import new_figure, save_figure
 from occkit.label_space import OCC3D_SPACE
@@ -31,7 +32,7 @@ from occkit.metrics.confusion import OccupancyMetric
 from occkit.sim.generate import SimConfig, simulate_dataset
 from occkit.viz.bev import bev_image
 
-__all__ = ["run_demo", "DEMO_MODELS", "DEMO_WORLD"]
+__all__ = ["run_demo", "check_world", "DEMO_MODELS", "DEMO_WORLD"]
 
 #: Zoo entries the demo trains, one per family, with their optimizer steps (docs/training.md gives the minutes).
 DEMO_MODELS: dict[str, int] = {"daocc_tiny": 400, "da_occ_tiny": 200, "flashocc_tiny": 200}
@@ -45,11 +46,20 @@ def _say(text: str) -> None:
     print(f"[demo] {text}", flush=True)
 
 
-def _ensure_world(data: Path) -> None:
+def check_world(data: Path) -> None:
+    """Refuse, in one line, a ``data`` folder that exists but does not hold the demo's world (nothing is written
+    into it): the demo's scores and the shipped weights' cards are of that world only."""
     if data.exists():
         differs = _differs_from_demo_world(data)
-        _say(f"using the synthetic world in {data}" + (f" (not the demo's world: {differs}; the scores are not the "
-                                                       "ones docs/training.md gives)" if differs else ""))
+        if differs:
+            raise UsageError(f"--data {data} is not the demo's world ({differs}): the demo writes and reuses only its "
+                             "own world; choose another --data (a new folder is written)")  # fmt: skip
+
+
+def _ensure_world(data: Path) -> None:
+    check_world(data)
+    if data.exists():
+        _say(f"using the demo's synthetic world in {data}")
         return
     config = SimConfig(**DEMO_WORLD)
     _say(f"writing a synthetic world to {data}: {config.scenes} scenes x {config.frames} key frames, six cameras, "

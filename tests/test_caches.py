@@ -87,8 +87,10 @@ def test_max_sweeps_has_a_cache_of_its_own(data):
                                                                      f"occkit-index-{VERSION}-2.npz"}
 
 
-def test_the_demo_says_when_the_world_it_reuses_is_not_its_own(tmp_path):
-    """The demo reuses the world in --data: a world of other settings is named, never taken silently as its own."""
+def test_the_demo_reuses_only_its_own_world_and_refuses_another_in_one_line(tmp_path, capsys):
+    """The demo reuses the world in --data only when it is the demo's; another is refused before any work and
+    nothing is written into it."""
+    from occkit.cli import main
     from occkit.config import save_config
     from occkit.demo import DEMO_WORLD, _differs_from_demo_world
     from occkit.sim.config import SimConfig
@@ -98,5 +100,10 @@ def test_the_demo_says_when_the_world_it_reuses_is_not_its_own(tmp_path):
     assert _differs_from_demo_world(tmp_path) == ""
     save_config(SimConfig(**{**DEMO_WORLD, "scenes": 2, "seed": 0}), tmp_path / DATASET_MARKER)
     assert _differs_from_demo_world(tmp_path) == "scenes 2 instead of 10, seed 0 instead of 1"
+    before = sorted(tmp_path.iterdir())
+    assert main(["demo", "--data", str(tmp_path), "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "is not the demo's world (scenes 2 instead of 10, seed 0 instead of 1)" in err
+    assert sorted(tmp_path.iterdir()) == before
     (tmp_path / DATASET_MARKER).unlink()
     assert _differs_from_demo_world(tmp_path) == f"{tmp_path} holds no readable {DATASET_MARKER}"
