@@ -15,6 +15,12 @@ Parity (:func:`check_parity`): the graph runs in onnxruntime on a real sample an
 ``forward`` in eval mode: the largest absolute logit difference must be at most 1e-3 and the arg-max class must agree
 on at least 99.9% of the voxels. Latencies (median over a few runs after a warm-up, same thread count) are measured
 for onnxruntime, the same network in PyTorch, and the model's full ``forward``.
+
+int8 (``precision="int8"``, :func:`quantize_int8`): onnxruntime's post-training static quantization of the fp32 graph
+(QDQ format, per-channel int8 weights, uint8 activations, MinMax calibration on key frames of the same rig), which
+stays standard ONNX (``QuantizeLinear`` / ``DequantizeLinear``). Its report gives the arg-max agreement and logit
+difference against the fp32 model (reported, not held to fp32's tolerance) and both graphs' onnxruntime latencies
+timed in interleaved pairs in one run, with their ratio.
 """
 
 from __future__ import annotations
@@ -56,7 +62,12 @@ __all__ = [
     "check_parity",
     "measure_latency",
     "export_model",
+    "quantize_int8",
+    "PRECISIONS",
 ]
+
+#: ``occkit export --precision``.
+PRECISIONS = ("fp32", "int8")
 
 DEFAULT_OPSET = 18
 #: Largest absolute difference between onnxruntime and PyTorch logits that passes.
@@ -440,6 +451,58 @@ def measure_latency(path: str | Path, model: nn.Module, net: DeployedNetwork, ba
     return latency
 
 
+# ------------------------------------------------------------------------------------------------------- int8
+def quantize_int8(fp32_path: str | Path, out: str | Path, calibration: list[dict[str, np.ndarray]]) -> dict[str, Any]:
+    """Quantize the fp32 graph at ``fp32_path`` to int8 at ``out`` with onnxruntime's static post-training
+    quantization: QDQ nodes, per-channel symmetric int8 weights, uint8 activations whose ranges are the MinMax of
+    the ``calibration`` feeds (graph inputs of key frames of the graph's rig).
+
+    Returns:
+        ``calibration_frames``, the quantizer's settings, and ``op_types`` of the written graph.
+    """
+    quantization = _require("onnxruntime.quantization")
+    if not calibration:
+        raise ValueError("int8 quantization needs at least one calibration frame")
+
+    class Frames(quantization.CalibrationDataReader):
+        def __init__(self) -> None:
+            self.feeds = iter(calibration)
+
+        def get_next(self):
+            return next(self.feeds, None)
+
+    settings = {"quant_format": "QDQ", "per_channel": True, "weight_type": "QInt8", "activation_type": "QUInt8",
+                "calibrate_method": "MinMax"}  # fmt: skip
+    with tempfile.TemporaryDirectory() as folder:
+        # onnxruntime's pre-processing (shape inference, graph optimisation) makes quantization cover more nodes.
+        prepared = Path(folder) / "prepared.onnx"
+        quantization.shape_inference.quant_pre_process(str(fp32_path), str(prepared), skip_symbolic_shape=True)
+        quantization.quantize_static(str(prepared), str(out), Frames(), quant_format=quantization.QuantFormat.QDQ,
+                                     per_channel=True, weight_type=quantization.QuantType.QInt8,
+                                     activation_type=quantization.QuantType.QUInt8,
+                                     calibrate_method=quantization.CalibrationMethod.MinMax)  # fmt: skip
+    return {"calibration_frames": len(calibration), "quantizer": settings, "op_types": operator_counts(out)}
+
+
+def paired_onnx_latency(first: str | Path, second: str | Path, feeds: dict[str, np.ndarray], output_names: list[str],
+                        pairs: int) -> dict[str, Any]:  # fmt: skip
+    """Median onnxruntime latencies (ms) of two graphs on the same feeds, timed in interleaved pairs after a warm-up
+    of each (so that machine load hits both alike), and the median of the pairs' ratios ``second / first``."""
+    sessions = [_session(first), _session(second)]
+    for session in sessions:
+        session.run(output_names, feeds)
+    times: list[list[float]] = [[], []]
+    for _ in range(pairs):
+        for index, session in enumerate(sessions):
+            start = time.perf_counter()
+            session.run(output_names, feeds)
+            times[index].append(time.perf_counter() - start)
+    ratios = [b / a for a, b in zip(*times, strict=True)]
+    return {"first_ms": round(1000 * statistics.median(times[0]), 2),
+            "second_ms": round(1000 * statistics.median(times[1]), 2),
+            "ratio": statistics.median(ratios), "pairs": pairs, "threads": torch.get_num_threads()}  # fmt: skip
+
+
 # ------------------------------------------------------------------------------------------------- end to end
 def export_model(
     name: str,
@@ -450,6 +513,8 @@ def export_model(
     check: bool = True,
     repeats: int = 3,
     sample: int | None = None,
+    precision: str = "fp32",
+    calibration_frames: int = 8,
 ) -> dict[str, Any]:
     """``occkit export``: load, export, check parity and write the report ``FILE.json`` beside ``out``
     (``FILE.onnx``; :func:`check_export_output`, before any work).
@@ -459,6 +524,8 @@ def export_model(
         data: dataset root for the reference sample (None: a synthetic world generated on the fly).
         opset: ONNX opset (18 or newer); check: run the parity check and timings; repeats: timed runs.
         sample: key frame of ``data`` (split ``all``) whose rig the graph is made for.
+        precision: ``fp32``, or ``int8``: the fp32 graph quantized (:func:`quantize_int8`) on up to
+            ``calibration_frames`` key frames of the sample's scene; single-frame models only.
 
     Returns:
         The report written to the JSON file; ``report["parity"]["passed"]`` tells whether parity holds.
@@ -468,15 +535,24 @@ def export_model(
         raise ValueError(f"repeats must be >= 1, got {repeats}")
     json_path = check_export_output(out)
     check_opset(opset)
+    if precision not in PRECISIONS:
+        raise ValueError(f"precision must be one of {', '.join(PRECISIONS)}, got {precision!r}")
+    if calibration_frames < 1:
+        raise ValueError(f"calibration_frames must be >= 1, got {calibration_frames}")
     model, experiment, difference = load_model(name, checkpoint)
     temporal = getattr(model, "temporal", None) is not None
-    batch, source, frames = load_sample(experiment, data, sample, scene=temporal)
+    if temporal and precision == "int8":
+        raise UsageError(f"{name} carries a history state between frames: int8 export takes single-frame models")
+    batch, source, frames = load_sample(experiment, data, sample, scene=temporal or precision == "int8")
     net = deploy(model, batch)
     with torch.no_grad():
         inputs = net.inputs(batch)
     start = time.perf_counter()
     report: dict[str, Any] = {"model": name, "checkpoint": None if checkpoint is None else str(checkpoint),
-                              "config_difference": difference, "sample": source}  # fmt: skip
+                              "config_difference": difference, "sample": source, "precision": precision}  # fmt: skip
+    if precision == "int8":
+        return _export_int8(report, model, net, batch, frames[:calibration_frames], out, opset, check, repeats,
+                            json_path, start)  # fmt: skip
     report.update(export_onnx(net, inputs, out, opset))
     report.update(exporter=f"torch.onnx.export(dynamo=True), torch {torch.__version__}",
                   export_seconds=round(time.perf_counter() - start, 1),
@@ -485,6 +561,37 @@ def export_model(
         report["parity"] = check_parity(out, model, net, batch, frames if temporal else None)
         report["latency_ms"] = measure_latency(out, model, net, batch, repeats)
         report["onnxruntime"] = _require("onnxruntime").__version__
+    write_report(json_path, report, COMMAND)
+    report["json"] = str(json_path)
+    return report
+
+
+def _export_int8(
+    report: dict[str, Any], model: nn.Module, net: DeployedNetwork, batch: Batch, frames: list[Batch], out: Path,
+    opset: int, check: bool, repeats: int, json_path: Path, start: float
+) -> dict[str, Any]:
+    """The int8 half of :func:`export_model`: the fp32 graph in a temporary folder, quantized into ``out``."""
+    with torch.no_grad():
+        inputs = net.inputs(batch)
+        calibration = [_feeds(net.inputs(frame)) for frame in frames]
+    with tempfile.TemporaryDirectory() as folder:
+        fp32 = Path(folder) / "fp32.onnx"
+        fp32_report = export_onnx(net, inputs, fp32, opset)
+        out.parent.mkdir(parents=True, exist_ok=True)
+        report.update(fp32_report)
+        report["int8"] = quantize_int8(fp32, out, calibration)
+        report.update(op_types=report["int8"]["op_types"], files=[str(out)],
+                      exporter=f"torch.onnx.export(dynamo=True), torch {torch.__version__}; onnxruntime.quantization",
+                      export_seconds=round(time.perf_counter() - start, 1))  # fmt: skip
+        if check:
+            parity = check_parity(out, model, net, batch)
+            parity["passed"] = None  # int8 is not held to fp32's tolerance: its cost is measured in mIoU
+            report["parity"] = parity
+            latency = paired_onnx_latency(fp32, out, _feeds(inputs), net.output_names, max(repeats, 3))
+            report["latency_ms"] = {"onnxruntime_fp32": latency["first_ms"], "onnxruntime_int8": latency["second_ms"],
+                                    "int8_over_fp32": latency["ratio"], "pairs": latency["pairs"],
+                                    "threads": latency["threads"]}  # fmt: skip
+            report["onnxruntime"] = _require("onnxruntime").__version__
     write_report(json_path, report, COMMAND)
     report["json"] = str(json_path)
     return report
