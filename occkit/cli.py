@@ -727,9 +727,10 @@ def _add_export(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-check", action="store_true", help="skip the onnxruntime parity check and timings")
     parser.add_argument("--repeats", type=integer(1, 10_000), default=3,
                         help="timed runs for the latencies (default 3)")
-    parser.add_argument("--precision", choices=("fp32", "int8"), default="fp32",
-                        help="int8: the fp32 graph quantized by onnxruntime (static, QDQ), calibrated on key frames "
-                             "of the sample's scene; its latency is timed against fp32's in one run (default fp32)")
+    parser.add_argument("--precision", choices=("fp32", "fp16", "int8"), default="fp32",
+                        help="fp16: the graph in half precision (for GPUs and TensorRT); int8: quantized by "
+                             "onnxruntime (static, QDQ), calibrated on key frames of the sample's scene; either is "
+                             "timed against the fp32 graph in one run (default fp32)")  # fmt: skip
     parser.add_argument("--calibration-frames", type=integer(1, 10_000), default=8,
                         help="with --precision int8: key frames of the scene calibrating the ranges (default 8)")
 
@@ -761,13 +762,15 @@ def _run_export(args: argparse.Namespace) -> int:
         print(f"wrote {report['json']}")
         return 0
     parity, latency = report["parity"], report["latency_ms"]
-    if args.precision == "int8":
-        print(f"int8 against the fp32 model on {report['sample']['token']}: max |logit difference| "
-              f"{parity['max_abs_diff']:.2e}, arg-max agreement {100 * parity['argmax_agreement']:.2f}% "
-              f"({report['int8']['calibration_frames']} calibration frames)")  # fmt: skip
+    if args.precision != "fp32":
+        reduced = args.precision
+        frames = report[reduced].get("calibration_frames")
+        print(f"{reduced} against the fp32 model on {report['sample']['token']}: max |logit difference| "
+              f"{parity['max_abs_diff']:.2e}, arg-max agreement {100 * parity['argmax_agreement']:.2f}%"
+              + (f" ({frames} calibration frames)" if frames else ""))  # fmt: skip
         print(f"median onnxruntime latency ({latency['threads']} threads, {latency['pairs']} interleaved pairs): "
-              f"fp32 {latency['onnxruntime_fp32']:.1f} ms, int8 {latency['onnxruntime_int8']:.1f} ms "
-              f"(int8 / fp32 = {latency['int8_over_fp32']:.2f})")  # fmt: skip
+              f"fp32 {latency['onnxruntime_fp32']:.1f} ms, {reduced} {latency[f'onnxruntime_{reduced}']:.1f} ms "
+              f"({reduced} / fp32 = {latency[f'{reduced}_over_fp32']:.2f})")  # fmt: skip
         print(f"wrote {report['json']}")
         return 0
     print(f"parity on {report['sample']['token']}: max |logit difference| {parity['max_abs_diff']:.2e} "

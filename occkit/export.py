@@ -16,6 +16,9 @@ Parity (:func:`check_parity`): the graph runs in onnxruntime on a real sample an
 on at least 99.9% of the voxels. Latencies (median over a few runs after a warm-up, same thread count) are measured
 for onnxruntime, the same network in PyTorch, and the model's full ``forward``.
 
+fp16 (``precision="fp16"``, :func:`convert_fp16`): the fp32 graph's weights and arithmetic in half precision, inputs
+and outputs kept fp32, the scatter-adds of the pooling kept fp32 (onnxruntime's CPU provider has no fp16
+scatter-add, and sums of many terms are what half precision rounds worst); for GPUs and TensorRT, and half the file.
 int8 (``precision="int8"``, :func:`quantize_int8`): onnxruntime's post-training static quantization of the fp32 graph
 (QDQ format, per-channel int8 weights, uint8 activations, MinMax calibration on key frames of the same rig), which
 stays standard ONNX (``QuantizeLinear`` / ``DequantizeLinear``). Its report gives the arg-max agreement and logit
@@ -63,11 +66,12 @@ __all__ = [
     "measure_latency",
     "export_model",
     "quantize_int8",
+    "convert_fp16",
     "PRECISIONS",
 ]
 
 #: ``occkit export --precision``.
-PRECISIONS = ("fp32", "int8")
+PRECISIONS = ("fp32", "fp16", "int8")
 
 DEFAULT_OPSET = 18
 #: Largest absolute difference between onnxruntime and PyTorch logits that passes.
@@ -484,6 +488,18 @@ def quantize_int8(fp32_path: str | Path, out: str | Path, calibration: list[dict
     return {"calibration_frames": len(calibration), "quantizer": settings, "op_types": operator_counts(out)}
 
 
+def convert_fp16(fp32_path: str | Path, out: str | Path) -> dict[str, Any]:
+    """The fp32 graph at ``fp32_path`` in half precision at ``out`` (onnxruntime's float16 converter): fp32 inputs and
+    outputs, the scatter operators kept fp32. Returns the converter's settings and ``op_types``."""
+    onnx = _require("onnx")
+    from onnxruntime.transformers.float16 import convert_float_to_float16
+
+    kept = ["ScatterElements", "ScatterND"]
+    converted = convert_float_to_float16(onnx.load(str(fp32_path)), keep_io_types=True, op_block_list=kept)
+    onnx.save(converted, str(out))
+    return {"converter": "onnxruntime.transformers.float16", "kept_fp32": kept, "op_types": operator_counts(out)}
+
+
 def paired_onnx_latency(first: str | Path, second: str | Path, feeds: dict[str, np.ndarray], output_names: list[str],
                         pairs: int) -> dict[str, Any]:  # fmt: skip
     """Median onnxruntime latencies (ms) of two graphs on the same feeds, timed in interleaved pairs after a warm-up
@@ -524,8 +540,9 @@ def export_model(
         data: dataset root for the reference sample (None: a synthetic world generated on the fly).
         opset: ONNX opset (18 or newer); check: run the parity check and timings; repeats: timed runs.
         sample: key frame of ``data`` (split ``all``) whose rig the graph is made for.
-        precision: ``fp32``, or ``int8``: the fp32 graph quantized (:func:`quantize_int8`) on up to
-            ``calibration_frames`` key frames of the sample's scene; single-frame models only.
+        precision: ``fp32``; ``fp16`` (:func:`convert_fp16`); or ``int8``: the fp32 graph quantized
+            (:func:`quantize_int8`) on up to ``calibration_frames`` key frames of the sample's scene, single-frame
+            models only.
 
     Returns:
         The report written to the JSON file; ``report["parity"]["passed"]`` tells whether parity holds.
@@ -542,7 +559,8 @@ def export_model(
     model, experiment, difference = load_model(name, checkpoint)
     temporal = getattr(model, "temporal", None) is not None
     if temporal and precision == "int8":
-        raise UsageError(f"{name} carries a history state between frames: int8 export takes single-frame models")
+        raise UsageError(f"{name} carries a history state between frames: int8 export takes single-frame models "
+                         "(its calibration is of single frames)")
     batch, source, frames = load_sample(experiment, data, sample, scene=temporal or precision == "int8")
     net = deploy(model, batch)
     with torch.no_grad():
@@ -550,9 +568,9 @@ def export_model(
     start = time.perf_counter()
     report: dict[str, Any] = {"model": name, "checkpoint": None if checkpoint is None else str(checkpoint),
                               "config_difference": difference, "sample": source, "precision": precision}  # fmt: skip
-    if precision == "int8":
-        return _export_int8(report, model, net, batch, frames[:calibration_frames], out, opset, check, repeats,
-                            json_path, start)  # fmt: skip
+    if precision != "fp32":
+        return _export_reduced(precision, report, model, net, batch, frames[:calibration_frames], out, opset, check,
+                               repeats, json_path, start)  # fmt: skip
     report.update(export_onnx(net, inputs, out, opset))
     report.update(exporter=f"torch.onnx.export(dynamo=True), torch {torch.__version__}",
                   export_seconds=round(time.perf_counter() - start, 1),
@@ -566,30 +584,33 @@ def export_model(
     return report
 
 
-def _export_int8(
-    report: dict[str, Any], model: nn.Module, net: DeployedNetwork, batch: Batch, frames: list[Batch], out: Path,
-    opset: int, check: bool, repeats: int, json_path: Path, start: float
+def _export_reduced(
+    precision: str, report: dict[str, Any], model: nn.Module, net: DeployedNetwork, batch: Batch,
+    frames: list[Batch], out: Path, opset: int, check: bool, repeats: int, json_path: Path, start: float
 ) -> dict[str, Any]:
-    """The int8 half of :func:`export_model`: the fp32 graph in a temporary folder, quantized into ``out``."""
+    """The fp16 / int8 half of :func:`export_model`: the fp32 graph in a temporary folder, converted into ``out``."""
     with torch.no_grad():
         inputs = net.inputs(batch)
-        calibration = [_feeds(net.inputs(frame)) for frame in frames]
+        calibration = [_feeds(net.inputs(frame)) for frame in frames] if precision == "int8" else []
     with tempfile.TemporaryDirectory() as folder:
         fp32 = Path(folder) / "fp32.onnx"
         fp32_report = export_onnx(net, inputs, fp32, opset)
         out.parent.mkdir(parents=True, exist_ok=True)
         report.update(fp32_report)
-        report["int8"] = quantize_int8(fp32, out, calibration)
-        report.update(op_types=report["int8"]["op_types"], files=[str(out)],
-                      exporter=f"torch.onnx.export(dynamo=True), torch {torch.__version__}; onnxruntime.quantization",
+        conversion = quantize_int8(fp32, out, calibration) if precision == "int8" else convert_fp16(fp32, out)
+        report[precision] = conversion
+        report.update(op_types=conversion["op_types"], files=[str(out)],
+                      exporter=f"torch.onnx.export(dynamo=True), torch {torch.__version__}; "
+                               + ("onnxruntime.quantization" if precision == "int8" else conversion["converter"]),
                       export_seconds=round(time.perf_counter() - start, 1))  # fmt: skip
         if check:
             parity = check_parity(out, model, net, batch)
-            parity["passed"] = None  # int8 is not held to fp32's tolerance: its cost is measured in mIoU
+            parity["passed"] = None  # not held to fp32's tolerance: a reduced precision's cost is measured in mIoU
             report["parity"] = parity
             latency = paired_onnx_latency(fp32, out, _feeds(inputs), net.output_names, max(repeats, 3))
-            report["latency_ms"] = {"onnxruntime_fp32": latency["first_ms"], "onnxruntime_int8": latency["second_ms"],
-                                    "int8_over_fp32": latency["ratio"], "pairs": latency["pairs"],
+            report["latency_ms"] = {"onnxruntime_fp32": latency["first_ms"],
+                                    f"onnxruntime_{precision}": latency["second_ms"],
+                                    f"{precision}_over_fp32": latency["ratio"], "pairs": latency["pairs"],
                                     "threads": latency["threads"]}  # fmt: skip
             report["onnxruntime"] = _require("onnxruntime").__version__
     write_report(json_path, report, COMMAND)
