@@ -1,6 +1,6 @@
 """The papers' ablations at tiny scale: every arm trained with one budget on one synthetic world, over seeds.
 
-    python benchmarks/study.py [--data data/study-world] [--steps 500] [--seeds 2] [--max-seeds 3]
+    python benchmarks/study.py [--data data/study-world] [--steps 500] [--seeds 5]
         [--arms NAME ...] [--out docs/results/study] [--runs runs/study] [--commit] [--report]
 
 Each arm is a CPU-sized zoo entry with one mechanism changed (:data:`ARMS`); every arm trains for ``--steps``
@@ -11,8 +11,11 @@ streamed scene by scene, as ``occkit eval`` runs them). Groups of arms may run w
 different machines (``--arms`` picks a group; each run records its steps and device), but the two arms of a claim
 are compared only when their budgets are equal.
 
-Each paper claim is a comparison of two arms (:data:`CLAIMS`). Once every arm has ``--seeds`` seeds, a claim whose
-two arms' mIoU ranges over seeds overlap gets one more seed for both arms, up to ``--max-seeds``.
+Each paper claim is a comparison of two arms (:data:`CLAIMS`), on the seeds both arms have (matched: the same seed
+set for both), every arm ``--seeds`` of them. Its verdict (:func:`verdict`) is a Welch test of the arms' mIoU over
+those seeds: the mean difference with its 95% confidence interval and the two-sided p-value; "holds" or "reversed"
+where p < 0.05 in that direction, else "no effect detected", with the smallest difference these seeds would have
+detected (at 80% power).
 
 Resumable: each finished run writes ``<out>/<arm>/seed-<k>.json`` (with ``--commit``, committed to git at once
 with the summary, so an interrupted study keeps what it finished); a rerun skips finished runs, whatever their
@@ -257,36 +260,52 @@ def summarise(runs: list[dict]) -> dict:
     return summary
 
 
-def _overlap(a: dict, b: dict) -> bool:
-    """Whether two arms' mIoU ranges over seeds overlap."""
-    return a["miou"]["min"] <= b["miou"]["max"] and b["miou"]["min"] <= a["miou"]["max"]
+#: Significance level of a verdict, and the power the detectable effect is stated at.
+ALPHA, POWER = 0.05, 0.8
 
 
-def verdict(claim: Claim, summaries: dict[str, dict]) -> dict:
-    """A claim's measured difference in mIoU (better - worse, points) and whether the seeds settle it."""
-    better, worse = summaries.get(claim.better), summaries.get(claim.worse)
+def welch(a: list[float], b: list[float]) -> dict[str, float]:
+    """Welch's unequal-variance t-test of ``mean(a) - mean(b)``: the difference, its 95% confidence interval, the
+    two-sided p-value, the degrees of freedom (Welch-Satterthwaite) and the smallest difference the test detects with
+    :data:`POWER` at :data:`ALPHA` (``(t_{1 - alpha / 2} + t_{power}) x standard error``). Needs two values per side."""
+    from scipy import stats
+
+    if len(a) < 2 or len(b) < 2:
+        raise ValueError(f"Welch's test needs at least two values per arm, got {len(a)} and {len(b)}")
+    va, vb = statistics.variance(a) / len(a), statistics.variance(b) / len(b)
+    difference, error = statistics.mean(a) - statistics.mean(b), (va + vb) ** 0.5
+    if error == 0:  # identical values within each arm: the difference is exact
+        p = 0.0 if difference else 1.0
+        return {"difference": difference, "ci95": [difference, difference], "p": p, "df": float("inf"),
+                "detectable": 0.0}  # fmt: skip
+    df = (va + vb) ** 2 / (va**2 / (len(a) - 1) + vb**2 / (len(b) - 1))
+    t = difference / error
+    critical = stats.t.ppf(1 - ALPHA / 2, df)
+    return {"difference": difference, "ci95": [difference - critical * error, difference + critical * error],
+            "p": float(2 * stats.t.sf(abs(t), df)), "df": df,
+            "detectable": float((critical + stats.t.ppf(POWER, df)) * error)}  # fmt: skip
+
+
+def verdict(claim: Claim, runs: dict[str, list[dict]]) -> dict:
+    """A claim's verdict from its arms' runs on their matched seeds: the mIoU difference (better - worse, points),
+    its 95% interval, the p-value, and "holds" / "reversed" (p < :data:`ALPHA` in that direction) or "no effect
+    detected" with the smallest difference the seeds would have detected."""
+    better, worse = runs.get(claim.better) or [], runs.get(claim.worse) or []
     if not better or not worse:
         return {"status": "not run"}
-    if better["steps"] != worse["steps"]:
-        return {"status": f"budgets differ ({better['steps']} against {worse['steps']} steps)"}
-    difference = 100 * (better["miou"]["mean"] - worse["miou"]["mean"])
-    status = "within the seed spread" if _overlap(better, worse) else "holds" if difference > 0 else "reversed"
-    return {"status": status, "difference": difference, "iou_difference": 100 * (better["iou"]["mean"]
-                                                                                 - worse["iou"]["mean"])}
-
-
-def _needs_more_seeds(runs: dict[str, list[dict]], arms: list[str], seeds: int, max_seeds: int) -> dict[str, int]:
-    """Arm -> seeds it should have: ``seeds``, one more for both arms of every claim whose ranges overlap."""
-    wanted = dict.fromkeys(arms, seeds)
-    if any(len(runs[name]) < seeds for name in arms):
-        return wanted
-    summaries = {name: summarise(runs[name]) for name in arms}
-    for claim in CLAIMS:
-        if claim.better in summaries and claim.worse in summaries and _overlap(summaries[claim.better],
-                                                                               summaries[claim.worse]):
-            for name in (claim.better, claim.worse):
-                wanted[name] = max(wanted[name], min(max_seeds, len(runs[name]) + 1))
-    return wanted
+    budgets = sorted({r["steps"] for r in better}), sorted({r["steps"] for r in worse})
+    if budgets[0] != budgets[1]:
+        return {"status": f"budgets differ ({budgets[0]} against {budgets[1]} steps)"}
+    seeds = sorted({r["seed"] for r in better} & {r["seed"] for r in worse})
+    if len(seeds) < 2:
+        return {"status": f"too few matched seeds ({len(seeds)})", "seeds": seeds}
+    by_seed = [{r["seed"]: r for r in arm} for arm in (better, worse)]
+    test = welch([100 * by_seed[0][s]["miou"] for s in seeds], [100 * by_seed[1][s]["miou"] for s in seeds])
+    iou = statistics.mean(100 * (by_seed[0][s]["iou"] - by_seed[1][s]["iou"]) for s in seeds)
+    direction = "holds" if test["difference"] > 0 else "reversed"
+    status = direction if test["p"] < ALPHA else "no effect detected"
+    return {"status": status, "seeds": seeds, "difference": test["difference"], "ci95": test["ci95"], "p": test["p"],
+            "df": test["df"], "detectable": test["detectable"], "iou_difference": iou}  # fmt: skip
 
 
 def _cell(summary: dict, key: str) -> str:
@@ -298,7 +317,7 @@ def write_report(out: Path, args: argparse.Namespace) -> dict:
     """``study.json``, ``study.md`` and ``study.png`` from every finished run in ``out``."""
     runs = _finished(out)
     summaries = {name: summarise(r) for name, r in runs.items() if r}
-    verdicts = [{**dataclasses.asdict(claim), **verdict(claim, summaries)} for claim in CLAIMS]
+    verdicts = [{**dataclasses.asdict(claim), **verdict(claim, runs)} for claim in CLAIMS]
     hours: dict[str, dict[str, float]] = {}  # device -> wall-clock and CPU hours of its runs (training + scoring)
     for run in (r for arm_runs in runs.values() for r in arm_runs):
         device = hours.setdefault(run.get("device", "CPU"), {"runs": 0, "wall_hours": 0.0, "cpu_hours": 0.0})
@@ -321,13 +340,24 @@ def write_report(out: Path, args: argparse.Namespace) -> dict:
                      f"{len(summary['seeds'])} | {_cell(summary, 'miou')} | {_cell(summary, 'iou')} | "
                      f"{_cell(summary, 'rayiou')} | {summary['train_minutes']:.1f} | "
                      f"{summary['train_cpu_minutes']:.1f} |")
-    lines += ["", "| paper | claim | better | worse | mIoU difference | IoU difference | verdict |",
-              "| --- | --- | --- | --- | --- | --- | --- |"]  # fmt: skip
+    lines += ["", "Each claim compares its two arms on the seeds both have. The difference is the better arm's mean "
+              "mIoU minus the worse arm's, with the range that holds the true difference 95 times in 100 (Welch's "
+              "t-test, which allows the arms different spreads); a claim holds, or is reversed, only where a "
+              "difference that large would arise by chance less than 5 times in 100 (p < 0.05). Otherwise no effect "
+              "was detected, and the last column says how large a difference these seeds would have caught (4 "
+              "times in 5).", "",
+              "| paper | claim | better | worse | seeds | mIoU difference (95% interval) | p | IoU difference | "
+              "verdict | detectable |", "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]  # fmt: skip
     for v in verdicts:
-        diff = "-" if "difference" not in v else f"{v['difference']:+.2f}"
-        iou = "-" if "iou_difference" not in v else f"{v['iou_difference']:+.2f}"
-        lines.append(f"| {v['paper']} | {v['text']} | `{v['better']}` | `{v['worse']}` | {diff} | {iou} | "
-                     f"{v['status']} |")
+        if "difference" not in v:
+            lines.append(f"| {v['paper']} | {v['text']} | `{v['better']}` | `{v['worse']}` | "
+                         f"{len(v.get('seeds', []))} | - | - | - | {v['status']} | - |")  # fmt: skip
+            continue
+        low, high = v["ci95"]
+        detectable = f"{v['detectable']:.2f}" if v["status"] == "no effect detected" else "-"
+        lines.append(f"| {v['paper']} | {v['text']} | `{v['better']}` | `{v['worse']}` | {len(v['seeds'])} | "
+                     f"{v['difference']:+.2f} ({low:+.2f} to {high:+.2f}) | {v['p']:.3f} | "
+                     f"{v['iou_difference']:+.2f} | {v['status']} | {detectable} |")  # fmt: skip
     lines.append("")
     for device, spent in hours.items():
         lines.append(f"- {device}: {spent['runs']} runs, {spent['wall_hours']:.2f} h wall-clock (the sum of the runs' "
@@ -363,10 +393,10 @@ def _plot(summaries: dict[str, dict], path: Path) -> None:
 
 
 def _todo(args: argparse.Namespace, running: set[tuple[str, int]]) -> list[tuple[str, int]]:
-    """The runs still to start, seed-major: ``--seeds`` per arm, then the extra seeds of unsettled claims."""
-    wanted = _needs_more_seeds(_finished(args.out), args.arms, args.seeds, args.max_seeds)
-    return [(name, seed) for seed in range(args.max_seeds) for name in args.arms
-            if seed < wanted[name] and (name, seed) not in running
+    """The runs still to start, seed-major: seeds 0 to ``--seeds`` - 1 of every arm (the same set for all, so that
+    every claim compares matched seeds)."""
+    return [(name, seed) for seed in range(args.seeds) for name in args.arms
+            if (name, seed) not in running
             and not (args.out / _slug(name) / f"seed-{seed}.json").is_file()]  # fmt: skip
 
 
@@ -411,8 +441,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--data", type=Path, default=Path("data/study-world"))
     parser.add_argument("--steps", type=int, default=500)
-    parser.add_argument("--seeds", type=int, default=2, help="seeds per arm (default 2)")
-    parser.add_argument("--max-seeds", type=int, default=3, help="seeds for the arms of an unsettled claim")
+    parser.add_argument("--seeds", type=int, default=5, help="seeds per arm, the same for every arm (default 5)")
     parser.add_argument("--arms", nargs="+", choices=list(ARMS), default=list(ARMS), metavar="ARM")
     parser.add_argument("--out", type=Path, default=Path("docs/results/study"))
     parser.add_argument("--runs", type=Path, default=Path("runs/study"))

@@ -1,4 +1,5 @@
-"""benchmarks/study.py: which runs are still to do, with seeds landing out of order, and when a claim gets a third."""
+"""benchmarks/study.py: which runs are still to do, with seeds landing out of order, and each branch of the verdict
+rule (Welch's t-test over matched seeds), against scipy's own test."""
 
 import argparse
 import importlib.util
@@ -23,8 +24,7 @@ def study():
 
 
 def _args(out: Path) -> argparse.Namespace:
-    return argparse.Namespace(out=out, data=out / "world", arms=[BETTER, WORSE], seeds=2, max_seeds=3, commit=False,
-                              jobs=1)
+    return argparse.Namespace(out=out, data=out / "world", arms=[BETTER, WORSE], seeds=2, commit=False, jobs=1)
 
 
 def _land(study, out: Path, arm: str, seed: int, miou: float) -> None:
@@ -41,14 +41,53 @@ def test_a_seed_that_landed_first_is_not_run_again(study, tmp_path):
     assert study._todo(_args(tmp_path), {(BETTER, 0), (WORSE, 0)}) == [(WORSE, 1)]
 
 
-@pytest.mark.parametrize(("worse", "third"), [((0.10, 0.12), False), ((0.10, 0.21), True)])
-def test_a_third_seed_only_where_the_ranges_overlap(study, tmp_path, worse, third):
+def _runs(better: list[float], worse: list[float], steps: tuple[int, int] = (10, 10)) -> dict[str, list[dict]]:
+    def arm(values, budget):
+        return [{"seed": seed, "steps": budget, "miou": value, "iou": 0.5} for seed, value in enumerate(values)]
+
+    return {BETTER: arm(better, steps[0]), WORSE: arm(worse, steps[1])}
+
+
+@pytest.mark.parametrize(
+    ("better", "worse", "status"),
+    [
+        ((0.20, 0.22, 0.21, 0.23, 0.20), (0.10, 0.12, 0.11, 0.10, 0.12), "holds"),
+        ((0.10, 0.12, 0.11, 0.10, 0.12), (0.20, 0.22, 0.21, 0.23, 0.20), "reversed"),
+        ((0.20, 0.25, 0.15, 0.22, 0.18), (0.19, 0.24, 0.16, 0.21, 0.17), "no effect detected"),
+    ],
+)
+def test_verdicts_follow_welchs_test_as_scipy_computes_it(study, better, worse, status):
+    from scipy import stats
+
+    claim = next(c for c in study.CLAIMS if (c.better, c.worse) == (BETTER, WORSE))
+    result = study.verdict(claim, _runs(better, worse))
+    assert result["status"] == status and result["seeds"] == [0, 1, 2, 3, 4]
+    independent = stats.ttest_ind([100 * v for v in better], [100 * v for v in worse], equal_var=False)
+    assert result["p"] == pytest.approx(independent.pvalue, rel=1e-9)
+    low, high = independent.confidence_interval(0.95)
+    assert result["ci95"] == pytest.approx([low, high], rel=1e-9)
+    assert result["difference"] == pytest.approx(100 * (sum(better) - sum(worse)) / 5)
+    # The detectable difference: what these seeds find 4 times in 5 at p < 0.05; larger than the one not detected.
+    if status == "no effect detected":
+        assert result["detectable"] > abs(result["difference"])
+
+
+def test_a_claim_needs_two_matched_seeds_and_one_budget(study):
+    claim = next(c for c in study.CLAIMS if (c.better, c.worse) == (BETTER, WORSE))
+    runs = _runs([0.2, 0.3], [0.1])
+    assert study.verdict(claim, runs)["status"] == "too few matched seeds (1)"
+    runs[WORSE].append({"seed": 7, "steps": 10, "miou": 0.1, "iou": 0.5})  # a seed the other arm lacks
+    assert study.verdict(claim, runs)["status"] == "too few matched seeds (1)"
+    assert study.verdict(claim, _runs([0.2, 0.3], [0.1, 0.2], steps=(10, 20)))["status"].startswith("budgets differ")
+    assert study.verdict(claim, {BETTER: [], WORSE: []})["status"] == "not run"
+
+
+def test_every_arm_runs_the_same_seeds(study, tmp_path):
     for seed, miou in enumerate((0.20, 0.22)):
         _land(study, tmp_path, BETTER, seed, miou)
-    for seed, miou in enumerate(worse):
-        _land(study, tmp_path, WORSE, seed, miou)
-    expected = [(BETTER, 2), (WORSE, 2)] if third else []
-    assert study._todo(_args(tmp_path), set()) == expected
+    args = _args(tmp_path)
+    args.seeds = 3
+    assert study._todo(args, set()) == [(WORSE, 0), (WORSE, 1), (BETTER, 2), (WORSE, 2)]
 
 
 def test_run_all_runs_what_is_missing_and_rewrites_the_summary(study, tmp_path, monkeypatch):
