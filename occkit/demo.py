@@ -32,7 +32,7 @@ from occkit.metrics.confusion import OccupancyMetric
 from occkit.sim.generate import SimConfig, simulate_dataset
 from occkit.viz.bev import bev_image
 
-__all__ = ["run_demo", "check_world", "DEMO_MODELS", "DEMO_WORLD"]
+__all__ = ["run_demo", "check_world", "baselines", "learned", "DEMO_MODELS", "DEMO_WORLD", "GROUND_CLASSES"]
 
 #: Zoo entries the demo trains, one per family, with their optimizer steps (docs/training.md gives the minutes).
 DEMO_MODELS: dict[str, int] = {"daocc_tiny": 400, "da_occ_tiny": 200, "flashocc_tiny": 200}
@@ -84,14 +84,43 @@ def _differs_from_demo_world(data: Path) -> str:
     return ", ".join(changed[:3]) + (f" and {len(changed) - 3} more" if len(changed) > 3 else "")
 
 
-def _baseline(dataset) -> dict:
-    """Scores of predicting the training split's most frequent class (free space) everywhere."""
-    metric = OccupancyMetric.for_space(DEMO_SPACE)
+#: The classes of the ground layer (Occ3D's flat classes): what a model that has learned only the ground predicts.
+GROUND_CLASSES = ("driveable_surface", "other_flat", "sidewalk", "terrain")
+#: IoU (fraction) from which a class above the ground counts as learned in the report's one-line summaries.
+LEARNED_IOU = 0.05
+
+
+def baselines(dataset) -> dict[str, dict]:
+    """Scores of two predictions that need no model, on ``dataset``'s frames: ``free``, free space everywhere (the
+    most frequent class), and ``ground``, the labels' own ground layer (:data:`GROUND_CLASSES`, each voxel with its
+    class) and free space above it: the most a model that has learned only the ground can score."""
+    taxonomy = DEMO_SPACE.taxonomy
+    ground = np.array([taxonomy.classes.index(name) for name in GROUND_CLASSES])
+    metrics = {"free": OccupancyMetric.for_space(DEMO_SPACE), "ground": OccupancyMetric.for_space(DEMO_SPACE)}
     for record_index in range(len(dataset)):
         sample = dataset[record_index]
-        labels = sample.voxel_semantics.numpy()
-        metric.update(labels, np.full_like(labels, DEMO_SPACE.free_index), sample.mask_camera.numpy())
-    return metric.compute()
+        labels, mask = sample.voxel_semantics.numpy(), sample.mask_camera.numpy()
+        free = np.full_like(labels, DEMO_SPACE.free_index)
+        metrics["free"].update(labels, free, mask)
+        metrics["ground"].update(labels, np.where(np.isin(labels, ground), labels, free), mask)
+    return {name: metric.compute() for name, metric in metrics.items()}
+
+
+def learned(scores: dict, ground: dict) -> str:
+    """What a model's scores say it has learned, in one line: the ground layer only (geometry IoU within a point of
+    the ground layer's and no class above the ground at :data:`LEARNED_IOU`), or the classes above the ground it
+    finds, best first."""
+    taxonomy = DEMO_SPACE.taxonomy
+    above = {name: iou for name, iou in scores["per_class_iou"].items()
+             if iou is not None and name not in GROUND_CLASSES and name != taxonomy.classes[DEMO_SPACE.free_index]}
+    found = sorted((item for item in above.items() if item[1] >= LEARNED_IOU), key=lambda item: -item[1])
+    if not found:
+        near = abs(scores["iou"] - ground["iou"]) <= 0.01
+        return ("the ground layer and free space above it, nothing above the ground" if near else
+                "no class above the ground yet")  # fmt: skip
+    listed = ", ".join(f"{name} {100 * iou:.0f}" for name, iou in found[:4])
+    more = f" and {len(found) - 4} more" if len(found) > 4 else ""
+    return f"objects above the ground: {listed}{more} IoU"
 
 
 def _render(models: dict, datasets: dict, out: Path, frames: int = 3) -> Path:
@@ -141,8 +170,13 @@ def _report(out: Path, results: dict, baseline: dict, seconds: float, render: Pa
         lines.append(f"| `{name}` | {inputs} | {_training_signals(name)} | {result['steps']} | "
                      f"{result['train_seconds'] / 60:.1f} min | "
                      f"{100 * result['miou']:.1f} | {100 * result['iou']:.1f} | {100 * result['rayiou']:.1f} |")
-    lines.append(f"| most frequent class (free) | none | - | - | - | {100 * baseline['miou']:.1f} | "
-                 f"{100 * baseline['iou']:.1f} | - |")
+    free, ground = baseline["free"], baseline["ground"]
+    lines.append(f"| free space everywhere (the most frequent class) | none | - | - | - | {100 * free['miou']:.1f} | "
+                 f"{100 * free['iou']:.1f} | - |")
+    lines.append(f"| the labels' ground layer, free above it (the most a ground-only model scores) | none | - | - | - "
+                 f"| {100 * ground['miou']:.1f} | {100 * ground['iou']:.1f} | - |")
+    lines += ["", "What each model has learned (a class counts from 5 IoU):", ""]
+    lines += [f"- `{name}`: {learned(result, ground)}" for name, result in results.items()]
     lines += ["", "Per-class IoU (%):", "", "| class | " + " | ".join(f"`{n}`" for n in results) + " |",
               "| --- |" + " --- |" * len(results)]  # fmt: skip
     for name in (taxonomy.classes[i] for i in taxonomy.semantic_ids):
@@ -214,11 +248,15 @@ def _train_score_report(out: Path, data: Path, models: dict[str, int], started: 
         trained[name], datasets[name] = model, dataset
         _say(f"{name}: mIoU {100 * scores['miou']:.1f}, IoU {100 * scores['iou']:.1f}, "
              f"RayIoU {100 * scores['rayiou']:.1f}")  # fmt: skip
-    baseline = _baseline(next(iter(datasets.values())))
+    baseline = baselines(next(iter(datasets.values())))
     render = _render(trained, datasets, out)
     seconds = time.perf_counter() - started
     metrics = {name: {k: v for k, v in r.items()} for name, r in results.items()}
-    metrics["most_frequent_class"] = {"miou": baseline["miou"], "iou": baseline["iou"]}
+    metrics["most_frequent_class"] = {"miou": baseline["free"]["miou"], "iou": baseline["free"]["iou"]}
+    metrics["ground_layer"] = {"miou": baseline["ground"]["miou"], "iou": baseline["ground"]["iou"]}
+    for name, result in metrics.items():
+        if name in results:
+            result["learned"] = learned(results[name], baseline["ground"])
     (out / "metrics.json").write_text(json.dumps({"models": metrics, "seconds": seconds, "data": str(data)},
                                                  indent=2) + "\n")  # fmt: skip
     report = _report(out, results, baseline, seconds, render)
