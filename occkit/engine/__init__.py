@@ -1,1 +1,2 @@
-"""Training, evaluation and prediction: experiments, checkpoints, distributed runs, logs and the demo."""
+"""Training, evaluation and prediction: the trainer, checkpoints, distributed runs, run logs, schedules and the
+reference frame of the benchmarks."""

@@ -63,7 +63,8 @@ class FlashOccConfig:
     depth_weight: float = 0.0
     """Weight of BEVDepth's depth BCE of the LSS depth bins against LiDAR depth, training only (the data then loads
     depth maps: ``data.depth_downsample = lss.feature_stride``). 0 in M0 and M1, which train without depth
-    supervision, as the paper does; the CPU-sized entry uses it to learn geometry in a short schedule."""
+    supervision, as the paper does, and so does the CPU-sized entry (docs/training.md: even exact depth does not
+    get a camera-only model past the ground in a short schedule)."""
     temporal: TemporalConfig | None = None
     """BEV history (BEVDet4D's, FlashOcc's 4D models): the LSS BEV fused with earlier frames' before the BEV
     encoder, whose ``in_channels`` is then ``temporal.out_channels(context)``; None: a single frame."""
