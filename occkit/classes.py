@@ -20,6 +20,7 @@ __all__ = [
     "OCC3D",
     "SURROUNDOCC_CLASSES",
     "SURROUNDOCC",
+    "THING_CLASSES",
     "DETECTION_CLASSES",
     "NUSCENES_TO_OCC3D",
     "NUSCENES_TO_DETECTION",
@@ -87,6 +88,11 @@ IGNORE_COLOR = (128, 128, 128)
 
 #: SurroundOcc class names in id order (0 = empty; 1..16 are Occ3D's 1..16).
 SURROUNDOCC_CLASSES: tuple[str, ...] = ("empty",) + OCC3D_CLASSES[1:17]
+
+#: Occ3D classes whose objects are instances of their own in panoptic occupancy (SparseOcc's RayPQ and
+#: Panoptic-FlashOcc); every other class is stuff.
+THING_CLASSES: tuple[str, ...] = ("car", "truck", "construction_vehicle", "bus", "trailer", "motorcycle", "bicycle",
+                                  "pedestrian")  # fmt: skip
 
 #: nuScenes detection classes in the order of mmdetection3d / BEVFusion / DAOcc configs.
 DETECTION_CLASSES: tuple[str, ...] = (

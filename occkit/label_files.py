@@ -38,10 +38,15 @@ def write_occ3d_labels(
     mask_lidar: np.ndarray,
     mask_camera: np.ndarray,
     flow: np.ndarray | None = None,
+    instances: np.ndarray | None = None,
+    instance_tokens: dict[int, str] | None = None,
 ) -> None:
     """Write an Occ3D ``labels.npz`` as the benchmark ships it: the three arrays as uint8 ``(X, Y, Z)``, byte for byte
     reproducible; with ``flow``, also the occupancy flow as the CVPR 2024 challenge's OpenOcc v2 files carry it
-    (key ``flow``, float32 ``(X, Y, Z, 2)`` ``vx, vy`` in m/s in the labels' frame)."""
+    (key ``flow``, float32 ``(X, Y, Z, 2)`` ``vx, vy`` in m/s in the labels' frame); with ``instances``, the
+    panoptic instance id of every voxel (key ``instances``, int32 ``(X, Y, Z)``, 0 for stuff and free space) and
+    ``instance_tokens`` id -> nuScenes instance token (keys ``instance_ids`` int32 ``(K,)`` and ``instance_tokens``
+    ``(K,)`` strings, ascending ids)."""
     arrays = {"semantics": np.asarray(semantics, np.uint8), "mask_lidar": np.asarray(mask_lidar, np.uint8),
               "mask_camera": np.asarray(mask_camera, np.uint8)}  # fmt: skip
     if flow is not None:
@@ -49,6 +54,17 @@ def write_occ3d_labels(
         if flow.shape != (*arrays["semantics"].shape, 2):
             raise ValueError(f"{path}: flow must have shape {(*arrays['semantics'].shape, 2)}, got {flow.shape}")
         arrays["flow"] = flow
+    if instances is not None:
+        instances = np.asarray(instances, np.int32)
+        if instances.shape != arrays["semantics"].shape:
+            raise ValueError(f"{path}: instances must have shape {arrays['semantics'].shape}, got {instances.shape}")
+        tokens = dict(sorted((instance_tokens or {}).items()))
+        present = set(np.unique(instances[instances > 0]).tolist())
+        if present - tokens.keys():
+            raise ValueError(f"{path}: instances {sorted(present - tokens.keys())[:5]} have no instance token")
+        arrays["instances"] = instances
+        arrays["instance_ids"] = np.array(list(tokens), dtype=np.int32)
+        arrays["instance_tokens"] = np.array(list(tokens.values()), dtype="<U64")
     save_npz(path, **arrays)
 
 

@@ -91,7 +91,8 @@ def test_flow_labels_equal_the_box_velocity_of_every_agent_voxel():
 def test_the_world_writes_flow_beside_the_semantics_as_openocc_does(world_root):
     path = next(iter(sorted((world_root / "gts").glob("*/*/labels.npz"))))
     with np.load(path) as archive:
-        assert set(archive.files) == {"semantics", "mask_lidar", "mask_camera", "flow"}
+        assert set(archive.files) == {"semantics", "mask_lidar", "mask_camera", "flow", "instances", "instance_ids",
+                                      "instance_tokens"}
         assert archive["flow"].dtype == np.float32 and archive["flow"].shape == (200, 200, 16, 2)
     labels = read_occ3d_labels(path, flow=True)
     assert labels.flow is not None and np.abs(labels.flow).max() > 0.1

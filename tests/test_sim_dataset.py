@@ -62,9 +62,13 @@ def test_layout_is_nuscenes_and_occ3d(dataset):
         assert (dataset / map_record["filename"]).is_file()
     scene_name = tables["scene"][0]["name"]
     with np.load(dataset / "gts" / scene_name / sample["token"] / "labels.npz") as labels:
-        assert {k: (v.shape, v.dtype) for k, v in labels.items()} == {
-            **{k: ((200, 200, 16), np.uint8) for k in ("semantics", "mask_lidar", "mask_camera")},
-            "flow": ((200, 200, 16, 2), np.float32),  # OpenOcc v2's occupancy flow
+        objects = labels["instance_ids"].shape[0]
+        assert {k: (v.shape, v.dtype.str) for k, v in labels.items()} == {
+            **{k: ((200, 200, 16), "|u1") for k in ("semantics", "mask_lidar", "mask_camera")},
+            "flow": ((200, 200, 16, 2), "<f4"),  # OpenOcc v2's occupancy flow
+            "instances": ((200, 200, 16), "<i4"),  # panoptic: each voxel's object, 0 for stuff
+            "instance_ids": ((objects,), "<i4"),
+            "instance_tokens": ((objects,), "<U64"),
         }
     infos = json.loads((dataset / "annotations.json").read_text())
     assert infos["train_split"] == [scene_name] and infos["val_split"] == []

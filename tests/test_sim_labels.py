@@ -368,3 +368,39 @@ def test_mask_inputs_are_checked():
     labels = np.full(OCC3D_GRID.shape, FREE, np.uint8)
     assert not lidar_visibility(labels, OCC3D_GRID, []).any()
     assert traverse_rays(labels != FREE, OCC3D_GRID, np.zeros((0, 3)), np.zeros((0, 3))).sum() == 0
+
+
+def test_panoptic_instance_ids_follow_objects_over_time_and_name_their_instance_token(tmp_path):
+    """labels.npz carries each voxel's object (the world's id + 1) for thing classes, 0 elsewhere, the same id in
+    every frame, and the nuScenes instance token of each id; annotated objects' tokens are the instance table's."""
+    import json
+
+    from occkit.classes import OCC3D, THING_CLASSES
+    from occkit.sim.generate import SimConfig, simulate_dataset
+
+    root = tmp_path / "world"
+    simulate_dataset(SimConfig(scenes=1, frames=2, seed=3, image_size=(176, 99), cameras=("CAM_FRONT",)), root)
+    samples = {r["token"]: r for r in json.loads((root / "v1.0-synth" / "sample.json").read_text())}
+    annotations = json.loads((root / "v1.0-synth" / "sample_annotation.json").read_text())
+    frames = []
+    for path in sorted(root.glob("gts/*/*/labels.npz"), key=lambda p: samples[p.parent.name]["timestamp"]):
+        with np.load(path) as archive:
+            frames.append({key: archive[key] for key in archive.files})
+    things = [OCC3D.index(name) for name in THING_CLASSES]
+    for frame in frames:
+        instances, semantics = frame["instances"], frame["semantics"]
+        assert instances.dtype == np.int32 and instances.shape == semantics.shape
+        assert np.isin(semantics[instances > 0], things).all()
+        assert (instances[np.isin(semantics, things)] > 0).mean() > 0.9
+        assert set(np.unique(instances[instances > 0])) == set(frame["instance_ids"].tolist())
+    # The same object keeps its id: the ids two frames share hold the same class in both.
+    first, second = frames
+    shared = set(first["instance_ids"].tolist()) & set(second["instance_ids"].tolist())
+    assert shared
+    tokens = [dict(zip(f["instance_ids"].tolist(), f["instance_tokens"].tolist(), strict=True)) for f in frames]
+    for instance in shared:
+        assert tokens[0][instance] == tokens[1][instance]
+        classes = [np.bincount(f["semantics"][f["instances"] == instance]).argmax() for f in frames]
+        assert classes[0] == classes[1]
+    annotated = {a["instance_token"] for a in annotations}
+    assert annotated & set(tokens[0].values())

@@ -27,14 +27,12 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from occkit.classes import THING_CLASSES
 from occkit.label_space import OCC3D_SPACE
 from occkit.metrics.rayiou import RAYIOU_THRESHOLDS, cast_rays_exact
 
 __all__ = ["THING_CLASSES", "MIN_SEGMENT_RAYS", "RayPQCounts", "raypq"]
 
-#: Classes whose objects are segments of their own; every other class is one segment per frame (stuff).
-THING_CLASSES: tuple[str, ...] = ("car", "truck", "construction_vehicle", "bus", "trailer", "motorcycle", "bicycle",
-                                  "pedestrian")  # fmt: skip
 #: An unmatched segment of fewer rays is neither a false negative nor a false positive.
 MIN_SEGMENT_RAYS = 10
 #: The reference's offset of its combined (ground truth, prediction) segment ids.

@@ -28,7 +28,7 @@ import math
 import numpy as np
 from numba import njit
 
-from occkit.classes import OCC3D
+from occkit.classes import OCC3D, THING_CLASSES
 from occkit.geometry.grid import OCC3D_GRID, SURROUNDOCC_GRID, VoxelGrid
 from occkit.sim.primitives import BOX, CYLINDER, GroundMap, Primitives
 
@@ -42,6 +42,8 @@ __all__ = [
 
 #: Occ3D label of free space.
 FREE = OCC3D.empty_index
+#: Class ids whose voxels carry their object's instance id.
+_THING_IDS = np.array([OCC3D.index(name) for name in THING_CLASSES], dtype=np.uint8)
 
 #: Occ3D class ids from the one that wins a shared voxel to the one that loses it: small dynamic objects, vehicles,
 #: manmade, vegetation, then the flat classes.
@@ -310,7 +312,8 @@ def occupancy_flow_labels(
     ego2global: np.ndarray,
     grid: VoxelGrid = OCC3D_GRID,
     supersample: int = 2,
-) -> tuple[np.ndarray, np.ndarray]:
+    instances: bool = False,
+) -> tuple[np.ndarray, np.ndarray] | tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Occ3D-style semantic occupancy and its flow in the ego frame (the challenge's ``flow`` of OpenOcc v2).
 
     A voxel's flow is the velocity of the solid that gave it its class: its object's box velocity, the same for
@@ -322,10 +325,13 @@ def occupancy_flow_labels(
         primitives: the world's solids at the key frame's instant (global frame).
         velocity: ``(P, 2)`` float64 global ``vx, vy`` (m/s) of each solid (:meth:`World.primitive_velocities`).
         ground, ego2global, grid, supersample: as :func:`occupancy_labels`.
+        instances: also return each voxel's object: the world's object id + 1 (``primitives.instance``, the same
+            for an object in every frame) where the voxel's class is a thing class (:data:`THING_CLASSES`), 0 for
+            stuff, ground and free space.
 
     Returns:
         ``(labels, flow)``: the labels of :func:`occupancy_labels` and ``(X, Y, Z, 2)`` float32 ego-frame
-        ``vx, vy`` (m/s).
+        ``vx, vy`` (m/s); with ``instances``, also the ``(X, Y, Z)`` int32 instance ids.
     """
     velocity = np.asarray(velocity, dtype=np.float64)
     if velocity.shape != (len(primitives), 2):
@@ -337,7 +343,12 @@ def occupancy_flow_labels(
     flow = np.zeros((*grid.shape, 2), dtype=np.float32)
     solid = owner >= 0
     flow[solid] = ego_velocity[owner[solid]]
-    return labels, flow
+    if not instances:
+        return labels, flow
+    ids = np.zeros(grid.shape, dtype=np.int32)
+    thing = solid & np.isin(labels, _THING_IDS)
+    ids[thing] = primitives.instance[owner[thing]].astype(np.int32) + 1
+    return labels, flow, ids
 
 
 def surroundocc_labels(

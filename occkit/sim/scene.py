@@ -357,7 +357,10 @@ def simulate_scene(config: SimConfig, index: int, root: Path, progress: Callable
         primitives = world.primitives(t_key)
         with timer("labels"):
             velocity = world.primitive_velocities(t_key)
-            semantics, flow = occupancy_flow_labels(primitives, velocity, world.ground, ego2global, OCC3D_GRID)
+            semantics, flow, instances = occupancy_flow_labels(primitives, velocity, world.ground, ego2global,
+                                                               OCC3D_GRID, instances=True)  # fmt: skip
+            # An object's id is the world's (+ 1), the same in every frame; its token is the instance table's.
+            instance_tokens = {int(i): scene.token("instance", int(i) - 1) for i in np.unique(instances[instances > 0])}
         with timer("mask_lidar"):
             global2ego = np.linalg.inv(ego2global)
             rays = []
@@ -374,7 +377,8 @@ def simulate_scene(config: SimConfig, index: int, root: Path, progress: Callable
             )
         gt_path = f"gts/{scene.name}/{sample_token}/labels.npz"
         with timer("write"):
-            write_occ3d_labels(scene.root / gt_path, semantics, mask_lidar, mask_camera, flow)
+            write_occ3d_labels(scene.root / gt_path, semantics, mask_lidar, mask_camera, flow, instances,
+                               instance_tokens)  # fmt: skip
             if config.surroundocc:
                 lidar_file = Path(key_sweep.filename).name
                 sparse = surroundocc_labels(primitives, world.ground, ego2global @ lidar2ego, SURROUNDOCC_GRID)
