@@ -51,3 +51,28 @@ def test_a_perfect_prediction_scores_one_and_merged_cars_lose_one_of_them():
     car = merged["per_class"][1][4]
     # One of the two cars matches the merged segment (IoU > 0.5 with the larger car) or neither does: never both.
     assert car < 1.0 and merged["per_class"][1][11] == pytest.approx(1.0)
+
+
+def test_eval_preds_reports_raypq_for_predictions_that_carry_instances(tmp_path):
+    from occkit.label_files import write_occ3d_labels
+    from occkit.metrics.evaluate import evaluate_predictions, markdown_table, write_prediction
+
+    labels, instances = _scene()
+    mask = np.ones_like(labels)
+    gts, perfect, semantic_only = tmp_path / "gts", tmp_path / "perfect", tmp_path / "semantic"
+    origins = {}
+    for index, token in enumerate(("a" * 32, "b" * 32)):
+        write_occ3d_labels(gts / "scene-0001" / token / "labels.npz", labels, mask, mask, instances=instances,
+                           instance_tokens={1: "x" * 32, 2: "y" * 32})  # fmt: skip
+        write_prediction(perfect, token, labels, instances=instances * (index + 3))
+        write_prediction(semantic_only, token, labels)
+        origins[token] = np.array([[0.0, 0.0, 1.5]])
+    result = evaluate_predictions(gts, perfect, ray_origins=origins, compute_rayiou=True, workers=1)
+    assert result["raypq"] == pytest.approx(1.0) and result["raypq@1"] == pytest.approx(1.0)
+    assert "RayPQ@2" in markdown_table(result)
+    plain = evaluate_predictions(gts, semantic_only, ray_origins=origins, compute_rayiou=True, workers=1)
+    assert "raypq" not in plain and plain["rayiou"] == pytest.approx(1.0)
+    (perfect / f"{'b' * 32}.npz").unlink()
+    write_prediction(perfect, "b" * 32, labels)
+    with pytest.raises(ValueError, match="1 of 2 predictions carry instances"):
+        evaluate_predictions(gts, perfect, ray_origins=origins, compute_rayiou=True, workers=1)

@@ -31,6 +31,7 @@ from occkit.data.names import path_under, safe_name
 from occkit.label_space import OCC3D_SPACE, LabelSpace, label_space
 from occkit.metrics.confusion import OccupancyMetric
 from occkit.metrics.rayiou import AVE_THRESHOLD, FLOW_CLASSES, RAYIOU_THRESHOLDS, rayiou, rayiou_from_counts
+from occkit.metrics.raypq import RayPQCounts
 
 __all__ = [
     "write_prediction",
@@ -97,15 +98,19 @@ def find_gt_labels(gt_root: str | Path, space: LabelSpace | str = OCC3D_SPACE,
     return dict(sorted(found.items()))
 
 
-def write_prediction(folder: Path, token: str, semantics: np.ndarray, flow: np.ndarray | None = None) -> Path:
+def write_prediction(folder: Path, token: str, semantics: np.ndarray, flow: np.ndarray | None = None,
+                     instances: np.ndarray | None = None) -> Path:  # fmt: skip
     """``folder/<token>.npz``, one Occ3D-format prediction file (``semantics``: uint8 ``(200, 200, 16)``; with
-    ``flow``, also ``flow``: float32 ``(200, 200, 16, 2)`` m/s, the key of the challenge's ground truth), written
+    ``flow``, also ``flow``: float32 ``(200, 200, 16, 2)`` m/s, the key of the challenge's ground truth; with
+    ``instances``, the panoptic instance ids, int32 ``(200, 200, 16)``, 0 for stuff, which RayPQ scores), written
     atomically. The token must be a safe name (:func:`~occkit.data.names.safe_name`), so the file stays in
     ``folder`` whatever the tables say."""
     path = path_under(folder, safe_name(token, f"sample token (writing into {folder})") + ".npz", str(folder))
     arrays = {"semantics": semantics.astype(np.uint8)}
     if flow is not None:
         arrays["flow"] = flow.astype(np.float32)
+    if instances is not None:
+        arrays["instances"] = instances.astype(np.int32)
     buffer = io.BytesIO()
     np.savez_compressed(buffer, **arrays)
     from occkit.outputs import write_atomic  # a failed write (a full disk) removes its temporary file
@@ -135,12 +140,15 @@ def read_prediction_flow(path: str | Path, space: LabelSpace | str = OCC3D_SPACE
 
 
 class _Prediction(NamedTuple):
-    """One prediction file's grid, its flow (None: not asked for, or absent), and which grid keys it holds."""
+    """One prediction file's grid, its flow and instances (None: not asked for, or absent), and which grid keys it
+    holds."""
 
     grid: np.ndarray
     flow: np.ndarray | None
     keys: tuple[str, ...]
     """The :data:`PRED_KEYS` the file holds; the grid is the first one's."""
+    instances: np.ndarray | None = None
+    """Panoptic instance ids (key ``instances``, integer, the grid's shape; 0: no instance)."""
 
 
 def _read_prediction(path: Path, space: LabelSpace, flow: bool) -> _Prediction:
@@ -154,6 +162,8 @@ def _read_prediction(path: Path, space: LabelSpace, flow: bool) -> _Prediction:
                                  f"(keys: {', '.join(archive.keys) or 'none'})")  # fmt: skip
             grid = archive.read(keys[0], _grid_check(path, keys[0], space))
             pred_flow = archive.read("flow", _flow_check(path, space)) if flow and "flow" in archive else None
+            instances = archive.read("instances", _instance_check(path, space)) \
+                if flow and "instances" in archive else None  # fmt: skip
     except FileNotFoundError:
         raise ValueError(f"{path}: prediction file not found") from None
     except OSError as error:
@@ -165,7 +175,24 @@ def _read_prediction(path: Path, space: LabelSpace, flow: bool) -> _Prediction:
                          f"({space.name})")  # fmt: skip
     if pred_flow is not None:
         pred_flow = check_flow(pred_flow, str(path))
-    return _Prediction(grid.astype(np.uint8, copy=False), pred_flow, keys)
+    return _Prediction(grid.astype(np.uint8, copy=False), pred_flow, keys, instances)
+
+
+def _instance_check(path: Path, space: LabelSpace) -> Callable[[NpyHeader], None]:
+    def check(header: NpyHeader) -> None:
+        if header.shape != space.grid.shape or header.dtype.kind not in "iu":
+            raise ValueError(f"{path}: instances must be an integer {space.grid.shape} array, got {header.dtype} "
+                             f"{header.shape}")  # fmt: skip
+
+    return check
+
+
+def read_instances(path: Path, space: LabelSpace) -> np.ndarray:
+    """The panoptic instance ids of a ground-truth ``labels.npz`` (key ``instances``, as ``occkit sim`` writes)."""
+    with NpzArchive(path, "labels") as archive:
+        if "instances" not in archive:
+            raise ValueError(f"{path}: has no instances: RayPQ needs panoptic labels (occkit sim writes them)")
+        return archive.read("instances", _instance_check(path, space))
 
 
 def _grid_check(path: Path, key: str, space: LabelSpace) -> Callable[[NpyHeader], None]:
@@ -243,6 +270,10 @@ def _score_frame(
         counts = rayiou([labels.semantics], [pred], [origins], **flows)["counts"]
     except ValueError as error:
         raise ValueError(f"sample {token}: RayIoU failed ({error})") from error
+    if prediction.instances is not None:  # panoptic: RayPQ on the same rays
+        panoptic = RayPQCounts()
+        panoptic.add_frame(labels.semantics, pred, read_instances(gt_path, space), prediction.instances, origins)
+        counts["raypq"] = panoptic
     return metric.confusion, counts, prediction.keys
 
 
@@ -303,7 +334,8 @@ def evaluate_predictions(
         ``missing_predictions`` and with RayIoU ``rayiou``, ``rayiou@1``, ``rayiou@2``, ``rayiou@4``, and when the
         predictions carry ``flow`` also ``mave`` (m/s), ``occ_score`` (the CVPR 2024 challenge's, read against
         the ground truth's ``flow``), ``ave_per_class`` and ``ave_rays`` (the true-positive rays each moving class's
-        AVE averages over); fractions in [0, 1], NaN as None.
+        AVE averages over), and when they carry ``instances`` (panoptic) ``raypq``, ``raypq@1``, ``raypq@2``,
+        ``raypq@4`` against the ground truth's ``instances``; fractions in [0, 1], NaN as None.
 
     Raises:
         FileNotFoundError: a folder or the origins file does not exist.
@@ -332,7 +364,8 @@ def evaluate_predictions(
 
     total = OccupancyMetric.for_space(space, mode)
     ray_gt = ray_pred = ray_tp = ave_sum = ave_count = 0
-    flow_frames = 0
+    flow_frames = panoptic_frames = 0
+    panoptic = RayPQCounts()
     both_keys: list[str] = []  # tokens whose file holds semantics and pred
     with ThreadPoolExecutor(max_workers=workers) as pool:
         futures = {
@@ -350,6 +383,9 @@ def evaluate_predictions(
                     ray_gt = ray_gt + np.asarray(counts["gt"], np.int64)
                     ray_pred = ray_pred + np.asarray(counts["pred"], np.int64)
                     ray_tp = ray_tp + np.array([counts["tp"][t] for t in RAYIOU_THRESHOLDS], np.int64)
+                    if "raypq" in counts:
+                        panoptic.merge(counts["raypq"])
+                        panoptic_frames += 1
                     if "ave_sum" in counts:
                         ave_sum = ave_sum + np.asarray(counts["ave_sum"], np.float64)
                         ave_count = ave_count + np.asarray(counts["ave_count"], np.int64)
@@ -381,6 +417,12 @@ def evaluate_predictions(
         if 0 < flow_frames < predicted:
             raise ValueError(f"{pred_dir}: {flow_frames} of {predicted} predictions carry flow: mAVE needs it in all "
                              "of them (or in none, for RayIoU alone)")  # fmt: skip
+        if 0 < panoptic_frames < predicted:
+            raise ValueError(f"{pred_dir}: {panoptic_frames} of {predicted} predictions carry instances: RayPQ needs "
+                             "them in all (or in none)")  # fmt: skip
+        if panoptic_frames:
+            pq = panoptic.compute()
+            result.update({key: _finite_or_none(pq[key]) for key in ("raypq", "raypq@1", "raypq@2", "raypq@4")})
         flow = (ave_sum, ave_count) if flow_frames else ()
         summary = rayiou_from_counts(ray_gt, ray_pred, ray_tp, *flow)
         keys = ("rayiou", "rayiou@1", "rayiou@2", "rayiou@4") + (("mave", "occ_score") if flow else ())
@@ -429,6 +471,14 @@ def markdown_table(result: Mapping) -> str:
         lines += [
             "",
             "| " + " | ".join(["RayIoU", *(f"RayIoU@{t}" for t in RAYIOU_THRESHOLDS)]) + " |",
+            "|" + "|".join(" ---: " for _ in keys) + "|",
+            "| " + " | ".join(_percent(result[key]) for key in keys) + " |",
+        ]
+    if "raypq" in result:
+        keys = ["raypq", *(f"raypq@{t}" for t in RAYIOU_THRESHOLDS)]
+        lines += [
+            "",
+            "| " + " | ".join(["RayPQ", *(f"RayPQ@{t}" for t in RAYIOU_THRESHOLDS)]) + " |",
             "|" + "|".join(" ---: " for _ in keys) + "|",
             "| " + " | ".join(_percent(result[key]) for key in keys) + " |",
         ]

@@ -83,6 +83,25 @@ class RayPQCounts:
         self.fn[j, cls] += int(((gt_areas >= MIN_SEGMENT_RAYS) & ~matched_gt).sum())
         self.fp[j, cls] += int(((pred_areas >= MIN_SEGMENT_RAYS) & ~matched_pred).sum())
 
+    def add_frame(self, gt: np.ndarray, pred: np.ndarray, gt_instances: np.ndarray, pred_instances: np.ndarray,
+                  origins: np.ndarray) -> None:  # fmt: skip
+        """One frame's grids: cast the rays from ``origins`` through both and count the non-free ground-truth rays."""
+        gt_label, gt_dist, gt_voxel = cast_rays_exact(gt, origins, voxels=True)
+        pred_label, pred_dist, pred_voxel = cast_rays_exact(pred, origins, voxels=True)
+        valid = gt_label != _FREE
+        gt_id = np.asarray(gt_instances)[tuple(gt_voxel[valid].T)]
+        pred_id = np.asarray(pred_instances)[tuple(pred_voxel[valid].T)]
+        self.add_rays(pred_label[valid], gt_label[valid], pred_id, gt_id, np.abs(pred_dist[valid] - gt_dist[valid]))
+
+    def merge(self, other: RayPQCounts) -> None:
+        """Add another set of counts (of other frames, same thresholds)."""
+        if other.thresholds != self.thresholds:
+            raise ValueError(f"cannot merge RayPQ counts of thresholds {other.thresholds} into {self.thresholds}")
+        self.tp += other.tp
+        self.iou += other.iou
+        self.fp += other.fp
+        self.fn += other.fn
+
     def compute(self) -> dict:
         """``raypq`` (mean over thresholds and classes), ``raypq@t`` per threshold, and ``per_class`` ``{t: list of
         17 floats}`` (NaN for a class without TP, FP or FN), the free class left out."""
@@ -144,11 +163,5 @@ def raypq(gts: Sequence[np.ndarray], preds: Sequence[np.ndarray], gt_instances: 
         raise ValueError("gts, preds, their instances and origins must have one entry per frame")
     counts = RayPQCounts()
     for gt, pred, gt_inst, pred_inst, org in zip(gts, preds, gt_instances, pred_instances, origins, strict=True):
-        gt_label, gt_dist, gt_voxel = cast_rays_exact(gt, org, voxels=True)
-        pred_label, pred_dist, pred_voxel = cast_rays_exact(pred, org, voxels=True)
-        valid = gt_label != _FREE
-        gt_id = np.asarray(gt_inst)[tuple(gt_voxel[valid].T)]
-        pred_id = np.asarray(pred_inst)[tuple(pred_voxel[valid].T)]
-        counts.add_rays(pred_label[valid], gt_label[valid], pred_id, gt_id,
-                        np.abs(pred_dist[valid] - gt_dist[valid]))  # fmt: skip
+        counts.add_frame(gt, pred, gt_inst, pred_inst, org)
     return counts.compute()
