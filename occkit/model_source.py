@@ -16,6 +16,7 @@ from occkit.shipped import SYNTHETIC, shipped_entries, weights_path
 
 if TYPE_CHECKING:
     from occkit.experiment import Experiment
+    from occkit.label_space import LabelSpace
 
 __all__ = ["ModelSource"]
 
@@ -62,6 +63,20 @@ class ModelSource:
         if self.ckpt is not None:
             return self.ckpt
         return f"{self.weights} ({self.entry})" if self.entry else self.weights
+
+    def load_predicting(self, space: str | None, device: Any = "cpu") -> tuple[Any, Experiment, LabelSpace]:
+        """:meth:`load`, for drawing predictions beside labels of label space ``space`` (None: the model's own):
+        the model, its experiment and its label space; a missing file, or a model of another label space, is an
+        error naming it."""
+        from occkit.label_space import label_space
+
+        if not self.file.is_file():
+            raise FileNotFoundError(f"{self.file} does not exist")
+        model, experiment = self.load(device)
+        own = label_space(experiment.data.label_space)
+        if space is not None and space != own.name:
+            raise ValueError(f"{self} predicts {own.name} labels, not {space}")
+        return model, experiment, own
 
     def load(self, device: Any = "cpu", overrides: Sequence[str] = ()) -> tuple[Any, Experiment]:
         """The model (an ``nn.Module``), in eval mode on ``device``, and the experiment to run it with

@@ -479,12 +479,7 @@ def open_scene(config: ViewConfig) -> Scene:
     model = experiment = None
     space = label_space(config.label_space or "occ3d")
     if config.model is not None:
-        if not config.model.file.is_file():
-            raise FileNotFoundError(f"{config.model.file} does not exist")
-        model, experiment = config.model.load(config.device)
-        space = label_space(experiment.data.label_space)
-        if config.label_space is not None and config.label_space != space.name:
-            raise ValueError(f"{config.model} predicts {space.name} labels, not {config.label_space}")
+        model, experiment, space = config.model.load_predicting(config.label_space, config.device)
     # A scene name is unique across the splits: a named scene is looked up in all of them ("all"), so that it needs
     # no --split, and the split only picks the default scene.
     if config.scene is not None:

@@ -153,12 +153,7 @@ def _model_predictor(config: VizConfig) -> tuple[Predictor, LabelSpace]:
     from occkit.data.collate import collate
     from occkit.engine.evaluate import evaluation_dataset
 
-    if not config.model.file.is_file():
-        raise FileNotFoundError(f"{config.model.file} does not exist")
-    model, experiment = config.model.load(config.device)
-    space = label_space(experiment.data.label_space)
-    if config.label_space is not None and config.label_space != space.name:
-        raise ValueError(f"{config.model} predicts {space.name} labels, not {config.label_space}")
+    model, experiment, space = config.model.load_predicting(config.label_space, config.device)
     experiment = dataclasses.replace(experiment, data=dataclasses.replace(experiment.data, version=config.version))
     dataset = evaluation_dataset(experiment, config.data, config.split, labels=False)
     position = {record.token: i for i, record in enumerate(dataset.records)}
