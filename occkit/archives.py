@@ -13,6 +13,7 @@ with one message naming the file, the member and the sizes; only then is any dat
 
 from __future__ import annotations
 
+import threading
 import zipfile
 import zlib
 from collections.abc import Callable
@@ -103,15 +104,23 @@ class NpyHeader(NamedTuple):
         return int(np.prod(self.shape, dtype=object)) * self.dtype.itemsize
 
 
+#: numpy parses a header with ``ast.literal_eval``, and CPython 3.11 keeps the AST constructor's recursion depth in
+#: state its threads share: two threads parsing at once can fail with "SystemError: AST constructor recursion depth
+#: mismatch" (seen here in ``eval-preds``, which scores frames in a thread pool). So one parse at a time; a header is
+#: a few hundred bytes.
+_HEADER_LOCK = threading.Lock()
+
+
 def _read_header(stream) -> NpyHeader:
     """The header of the ``.npy`` stream, read without its data; ValueError for anything else."""
     version = np.lib.format.read_magic(stream)
-    if version == (1, 0):
-        shape, fortran_order, dtype = np.lib.format.read_array_header_1_0(stream)
-    elif version in ((2, 0), (3, 0)):
-        shape, fortran_order, dtype = np.lib.format.read_array_header_2_0(stream)
-    else:
-        raise ValueError(f"unknown .npy format version {version[0]}.{version[1]}")
+    with _HEADER_LOCK:
+        if version == (1, 0):
+            shape, fortran_order, dtype = np.lib.format.read_array_header_1_0(stream)
+        elif version in ((2, 0), (3, 0)):
+            shape, fortran_order, dtype = np.lib.format.read_array_header_2_0(stream)
+        else:
+            raise ValueError(f"unknown .npy format version {version[0]}.{version[1]}")
     return NpyHeader(tuple(shape), np.dtype(dtype), bool(fortran_order), stream.tell())
 
 

@@ -57,7 +57,7 @@ from torch import Tensor, nn
 from occkit import zoo
 from occkit.config import ConfigError
 from occkit.outputs import check_report_file, write_atomic, write_report
-from occkit.weight_files import check_finite, load_torch_file, read_safetensors
+from occkit.weight_files import WEIGHTS_FORMAT, check_finite, load_torch_file, read_safetensors
 
 __all__ = [
     "WEIGHTS_FORMAT",
@@ -78,8 +78,6 @@ __all__ = [
     "load_partial",
 ]
 
-#: ``format`` in the metadata of the ``.safetensors`` files :func:`convert_checkpoint` writes.
-WEIGHTS_FORMAT = "occkit-weights/1"
 
 #: How the ``format`` marker of occkit's run checkpoints (``occkit.engine.checkpoint.FORMAT``) begins. Matched by
 #: prefix, not imported: the engine loads reference weights through this module (``train.load_from``), so this

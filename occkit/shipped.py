@@ -110,14 +110,31 @@ def weights_path(entry: str, folder: Path | None = None) -> Path:
 
 
 def load_shipped(model: Any, entry: str, folder: Path | None = None) -> Any:
-    """Load ``entry``'s shipped weights strictly into ``model`` (a model of ``entry``'s architecture and shapes)."""
-    from occkit.convert import load_weights
+    """Load ``entry``'s shipped weights strictly into ``model`` (a model of ``entry``'s architecture and shapes).
 
-    return load_weights(weights_path(entry, folder), model)
+    Raises:
+        ConfigError: no weights are shipped for ``entry``, the file is not its card's, or it does not fit ``model``
+            (the message names the first keys that differ).
+    """
+    from occkit.weight_files import WEIGHTS_FORMAT, read_safetensors
+
+    path = weights_path(entry, folder)
+    state, metadata = read_safetensors(path)
+    if metadata.get("format") != WEIGHTS_FORMAT or metadata.get("entry") != entry:
+        raise ConfigError(f"{path} is not occkit's weights of {entry} (metadata {metadata}): reinstall occkit")
+    expected = {key: tuple(value.shape) for key, value in model.state_dict().items()}
+    missing, unexpected = sorted(expected.keys() - state.keys()), sorted(state.keys() - expected.keys())
+    wrong = sorted(key for key in expected.keys() & state.keys() if tuple(state[key].shape) != expected[key])
+    if missing or unexpected or wrong:
+        raise ConfigError(f"{path} does not fit this {entry} model: missing {missing[:3]}, unexpected "
+                          f"{unexpected[:3]}, other shapes {wrong[:3]}")  # fmt: skip
+    model.load_state_dict(state, strict=True)
+    return model
 
 
-def write_shipped(model: Any, card_fields: dict[str, Any], folder: Path) -> WeightsCard:
-    """Write ``model``'s weights at half precision and their card into ``folder``; returns the card.
+def write_shipped(model: Any, architecture: str, card_fields: dict[str, Any], folder: Path) -> WeightsCard:
+    """Write ``model``'s weights (of zoo architecture ``architecture``) at half precision and their card into
+    ``folder``; returns the card.
 
     ``card_fields`` holds every :class:`WeightsCard` field but ``sha256`` (computed here). Integer buffers (BatchNorm's
     step counters) keep their dtype.
@@ -126,15 +143,15 @@ def write_shipped(model: Any, card_fields: dict[str, Any], folder: Path) -> Weig
     from safetensors.torch import save
 
     from occkit import __version__
-    from occkit.convert import WEIGHTS_FORMAT, _architecture_of
     from occkit.outputs import write_atomic
+    from occkit.weight_files import WEIGHTS_FORMAT
 
     entry = card_fields["entry"]
     # Copies: safetensors stores each tensor on its own, and a state dict may hold views of one storage.
     half = getattr(torch, STORED_DTYPE)
     state = {key: (value.to(half) if value.is_floating_point() else value).detach().cpu().clone()
              for key, value in model.state_dict().items()}  # fmt: skip
-    metadata = {"format": WEIGHTS_FORMAT, "entry": entry, "architecture": _architecture_of(model),
+    metadata = {"format": WEIGHTS_FORMAT, "entry": entry, "architecture": architecture,
                 "source": "occkit", "source_file": "synthetic world", "complete": "true"}  # fmt: skip
     data = save(state, metadata)
     folder.mkdir(parents=True, exist_ok=True)

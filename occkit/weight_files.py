@@ -23,7 +23,10 @@ from torch import Tensor
 from occkit.archives import check_torch_file
 from occkit.arguments import format_bytes
 
-__all__ = ["load_torch_file", "check_finite", "read_safetensors"]
+__all__ = ["WEIGHTS_FORMAT", "load_torch_file", "check_finite", "read_safetensors"]
+
+#: ``format`` in the metadata of occkit's ``.safetensors`` weights (``occkit convert``'s output, the shipped weights).
+WEIGHTS_FORMAT = "occkit-weights/1"
 
 
 def _numpy_globals() -> list:

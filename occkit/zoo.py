@@ -109,18 +109,17 @@ def build_from_config(name: str, cfg: Any) -> OccupancyModel:
     return architecture(name).build(cfg)
 
 
-def build(name: str, weights: str | Path | None = None) -> OccupancyModel:
-    """The model of the zoo entry ``name``: freshly initialised, or with ``weights``: ``"synthetic"`` for the
-    weights occkit ships for it (:mod:`occkit.shipped`, checked against their card), or a weights file in occkit's
-    names (``.safetensors`` from ``occkit convert``), loaded strictly."""
+def build(name: str, weights: str | None = None) -> OccupancyModel:
+    """The model of the zoo entry ``name``: freshly initialised, or with ``weights="synthetic"`` the weights occkit
+    ships for it (:mod:`occkit.shipped`, checked against their card). A weights file loads with
+    :func:`occkit.convert.load_weights`."""
     model = build_from_config(*model_config(name))
     if weights is None:
         return model
-    if str(weights) == SYNTHETIC:
-        return load_shipped(model, name)
-    from occkit.convert import load_weights
-
-    return load_weights(weights, model)
+    if weights != SYNTHETIC:
+        raise ValueError(f"weights must be None or {SYNTHETIC!r}, got {weights!r} (a weights file loads with "
+                         "occkit.convert.load_weights)")
+    return load_shipped(model, name)
 
 
 def experiment_from_dict(data: Any, where: str = "experiment", overrides: Sequence[str] = ()) -> Experiment:

@@ -95,7 +95,7 @@ def package(entry: str, run: Path, demo: Path, world: dict, device: str, command
     steps = int(checkpoint.stem.removeprefix("step-"))
     notes = (f"converged: {100 * gain:+.2f} mIoU over the last fifth of the run" if done else
              f"not converged: {100 * gain:+.2f} mIoU over the last fifth of the run")  # fmt: skip
-    card = write_shipped(model, {
+    card = write_shipped(model, experiment.architecture, {
         "entry": entry, "world": {**world, "image_size": list(world["image_size"])}, "steps": steps,
         "train_seconds": round(training_seconds(run, experiment.train.batch_size), 1), "device": device,
         "command": command, "curve": points, "notes": notes,

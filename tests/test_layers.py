@@ -20,7 +20,7 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     # plain values, shapes and the geometry every other layer computes with
     ("occkit.errors", "occkit.config", "occkit.classes", "occkit.types", "occkit.geometry", "occkit.label_space",
      "occkit.label_files", "occkit.arguments", "occkit.nuscenes", "occkit.figure", "occkit.weight_files",
-     "occkit.archives", "occkit.outputs"),
+     "occkit.archives", "occkit.outputs", "occkit.shipped"),
     # reading and writing datasets; the synthetic world writes what data reads, importing nothing of it; labels
     # built from a dataset's sensor data
     ("occkit.data", "occkit.sim", "occkit.labeling"),
@@ -31,8 +31,8 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     ("occkit.models",),
     # names -> experiments and models; reference checkpoints -> an entry's weights (the engine's load_from uses it)
     ("occkit.zoo", "occkit.convert"),
-    # training, evaluation, prediction
-    ("occkit.engine",),
+    # training, evaluation, prediction; where a command's model comes from
+    ("occkit.engine", "occkit.model_source"),
     # consumers of trained models
     ("occkit.bench", "occkit.export", "occkit.viz", "occkit.environment", "occkit.robustness"),
     ("occkit.demo",),

@@ -33,7 +33,7 @@ def weights(tmp_path_factory) -> tuple[Path, torch.nn.Module]:
     folder = tmp_path_factory.mktemp("weights")
     torch.manual_seed(0)
     model = zoo.build(ENTRY)
-    shipped.write_shipped(model, card_fields(), folder)
+    shipped.write_shipped(model, "flashocc", card_fields(), folder)
     return folder, model
 
 
