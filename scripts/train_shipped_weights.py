@@ -38,6 +38,8 @@ TRAIN_WORLD = {"scenes": 16, "frames": 24, "image_size": (400, 225), "seed": 202
 ENTRIES = ("daocc_tiny", "da_occ_tiny", "flashocc_tiny")
 #: A run has converged when its held-out mIoU gained less than this over the last fifth of its steps.
 CONVERGED_GAIN = 0.005
+#: Validations a curve needs before it can say so.
+MIN_CURVE_POINTS = 4
 
 
 def ensure_world(root: Path, world: dict) -> None:
@@ -61,12 +63,14 @@ def curve(run: Path) -> list[dict[str, float]]:
 
 
 def converged(points: list[dict[str, float]]) -> tuple[bool, float]:
-    """Whether the mIoU gained less than :data:`CONVERGED_GAIN` over the last fifth of the run, and that gain."""
-    if len(points) < 2:
+    """Whether the held-out mIoU gained less than :data:`CONVERGED_GAIN` over the last fifth of the run (the last
+    value against the best one up to 80% of the steps), and that gain; never with fewer than
+    :data:`MIN_CURVE_POINTS` validations, which cannot tell a plateau from a dip."""
+    if len(points) < MIN_CURVE_POINTS:
         return False, float("nan")
     last = points[-1]["step"]
-    start = next(point for point in points if point["step"] >= 0.8 * last)
-    gain = points[-1]["miou"] - (start["miou"] if start is not points[-1] else points[-2]["miou"])
+    before = max(point["miou"] for point in points if point["step"] <= 0.8 * last)
+    gain = points[-1]["miou"] - before
     return gain < CONVERGED_GAIN, gain
 
 
@@ -81,7 +85,10 @@ def training_seconds(run: Path, batch_size: int) -> float:
     return seconds
 
 
-def package(entry: str, run: Path, demo: Path, world: dict, device: str, command: str, out: Path) -> None:
+def package(entry: str, run: Path, demo: Path, world: dict, device: str, trained_on: str, command: str,
+            out: Path) -> None:  # fmt: skip
+    """Score the run's newest checkpoint, rounded to half precision, on ``demo``'s held-out scenes (on ``device``)
+    and write it with its card into ``out`` (``trained_on`` names where the run trained)."""
     checkpoint = sorted(run.glob("step-*.pt"))[-1]
     model, experiment = load_trained(checkpoint, device)
     with torch.no_grad():  # the card scores what is shipped: the weights at half precision
@@ -90,14 +97,16 @@ def package(entry: str, run: Path, demo: Path, world: dict, device: str, command
                 tensor.copy_(tensor.half().float())
     dataset = evaluation_dataset(experiment, demo, "val")
     scores = evaluate_model(model, dataset, batch_size=1, workers=0, ray_origins=dataset_ray_origins(dataset))
-    points = curve(run)
-    done, gain = converged(points)
     steps = int(checkpoint.stem.removeprefix("step-"))
-    notes = (f"converged: {100 * gain:+.2f} mIoU over the last fifth of the run" if done else
-             f"not converged: {100 * gain:+.2f} mIoU over the last fifth of the run")  # fmt: skip
+    points = [point for point in curve(run) if point["step"] <= steps]  # up to the checkpoint shipped
+    done, gain = converged(points)
+    if len(points) < MIN_CURVE_POINTS:
+        notes = f"not converged: {len(points)} held-out validations, too few to tell"
+    else:
+        notes = f"{'converged' if done else 'not converged'}: {100 * gain:+.2f} mIoU over the last fifth of the run"
     card = write_shipped(model, experiment.architecture, {
         "entry": entry, "world": {**world, "image_size": list(world["image_size"])}, "steps": steps,
-        "train_seconds": round(training_seconds(run, experiment.train.batch_size), 1), "device": device,
+        "train_seconds": round(training_seconds(run, experiment.train.batch_size), 1), "device": trained_on,
         "command": command, "curve": points, "notes": notes,
         "scores": {"miou": scores["miou"], "iou": scores["iou"], "rayiou": scores.get("rayiou"),
                    "per_class": scores["per_class_iou"]},
@@ -115,20 +124,26 @@ def main() -> int:
     parser.add_argument("--epochs", type=int, default=30, help="epochs of the training world (default 30)")
     parser.add_argument("--device", default="cpu", help="cpu or cuda (default cpu)")
     parser.add_argument("--write", action="store_true", help="score the last weights and write them with a card")
+    parser.add_argument("--no-train", action="store_true",
+                        help="with --write: package the run's newest checkpoint as it is (no training step)")
     parser.add_argument("--out", type=Path, default=Path(__file__).resolve().parents[1] / "occkit" / "weights")
     args = parser.parse_args()
-    ensure_world(args.world, TRAIN_WORLD)
+    if args.no_train and not args.write:
+        parser.error("--no-train goes with --write")
+    if not args.no_train:
+        ensure_world(args.world, TRAIN_WORLD)
     command = "python scripts/train_shipped_weights.py " + shlex.join(sys.argv[1:])
     threads = torch.get_num_threads()
-    device = f"{args.device} ({threads} threads)" if args.device == "cpu" else torch.cuda.get_device_name()
+    trained_on = f"{args.device} ({threads} threads)" if args.device == "cpu" else torch.cuda.get_device_name()
     for entry in args.entry or ENTRIES:
-        experiment = run_experiment(entry, args.world, args.epochs, args.device)
-        run = train(experiment, args.runs / entry, resume="auto", allow_changes=("train.workers",),
-                    device=args.device)  # fmt: skip
-        print(f"{entry}: trained to step {run.steps}", flush=True)
+        if not args.no_train:
+            experiment = run_experiment(entry, args.world, args.epochs, args.device)
+            run = train(experiment, args.runs / entry, resume="auto", allow_changes=("train.workers",),
+                        device=args.device)  # fmt: skip
+            print(f"{entry}: trained to step {run.steps}", flush=True)
         if args.write:
             ensure_world(args.demo_data, DEMO_WORLD)
-            package(entry, args.runs / entry, args.demo_data, TRAIN_WORLD, device, command, args.out)
+            package(entry, args.runs / entry, args.demo_data, TRAIN_WORLD, args.device, trained_on, command, args.out)
     return 0
 
 

@@ -129,3 +129,20 @@ def test_every_command_that_runs_a_model_takes_the_shipped_weights(installed, wo
                  "--no-rayiou", "--workers", "0"]) == 0  # fmt: skip
     report = json.loads((tmp_path / "rob" / "robustness.json").read_text())
     assert report["checkpoint"] == f"synthetic ({ENTRY})"
+
+
+def test_a_run_converges_only_on_a_plateau_of_enough_validations():
+    import importlib.util
+
+    path = Path(__file__).resolve().parents[1] / "scripts" / "train_shipped_weights.py"
+    spec = importlib.util.spec_from_file_location("train_shipped_weights", path)
+    script = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(script)
+
+    def points(values):
+        return [{"step": 100 * (i + 1), "miou": v, "iou": 0.6} for i, v in enumerate(values)]
+
+    plateau, _ = script.converged(points([0.10, 0.15, 0.16, 0.162, 0.163]))  # +0.1 over the last fifth
+    rising, gain = script.converged(points([0.10, 0.15, 0.20, 0.25, 0.30]))
+    assert plateau and not rising and gain == pytest.approx(0.05)
+    assert script.converged(points([0.10, 0.09, 0.08])) == (False, pytest.approx(float("nan"), nan_ok=True))
