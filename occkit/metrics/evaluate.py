@@ -466,25 +466,23 @@ def markdown_table(result: Mapping) -> str:
         "|" + "|".join(" ---: " for _ in header) + "|",
         "| " + " | ".join(values) + " |",
     ]
-    if "rayiou" in result:
-        keys = ["rayiou", *(f"rayiou@{t}" for t in RAYIOU_THRESHOLDS)]
-        lines += [
-            "",
-            "| " + " | ".join(["RayIoU", *(f"RayIoU@{t}" for t in RAYIOU_THRESHOLDS)]) + " |",
-            "|" + "|".join(" ---: " for _ in keys) + "|",
-            "| " + " | ".join(_percent(result[key]) for key in keys) + " |",
-        ]
-    if "raypq" in result:
-        keys = ["raypq", *(f"raypq@{t}" for t in RAYIOU_THRESHOLDS)]
-        lines += [
-            "",
-            "| " + " | ".join(["RayPQ", *(f"RayPQ@{t}" for t in RAYIOU_THRESHOLDS)]) + " |",
-            "|" + "|".join(" ---: " for _ in keys) + "|",
-            "| " + " | ".join(_percent(result[key]) for key in keys) + " |",
-        ]
+    for key, name in (("rayiou", "RayIoU"), ("raypq", "RayPQ")):
+        if key in result:
+            lines += _ray_table(result, key, name)
     if "mave" in result:
         lines += _flow_lines(result)
     return "\n".join(lines) + "\n"
+
+
+def _ray_table(result: Mapping, key: str, name: str) -> list[str]:
+    """A blank line and the table of a ray metric: its mean and its value at each depth threshold, in percent."""
+    keys = [key, *(f"{key}@{t}" for t in RAYIOU_THRESHOLDS)]
+    return [
+        "",
+        "| " + " | ".join([name, *(f"{name}@{t}" for t in RAYIOU_THRESHOLDS)]) + " |",
+        "|" + "|".join(" ---: " for _ in keys) + "|",
+        "| " + " | ".join(_percent(result[k]) for k in keys) + " |",
+    ]
 
 
 def _nan_as_null(value: Any) -> Any:
