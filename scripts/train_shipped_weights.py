@@ -48,11 +48,14 @@ def ensure_world(root: Path, world: dict) -> None:
         simulate_dataset(SimConfig(**world), root)
 
 
-def run_experiment(entry: str, world: Path, epochs: int, device: str | None):
+def run_experiment(entry: str, world: Path, epochs: int, device: str | None, workers: int | None = None):
+    """The entry's recipe on ``world``; loader processes ``workers``, by default the entry's on a GPU and 1 on a CPU
+    (where every other core trains)."""
     experiment = zoo.experiment(entry)
     experiment = dataclasses.replace(experiment, data=dataclasses.replace(experiment.data, root=str(world)))
-    return replace_train(experiment, epochs=epochs, val_every=2, checkpoint_every=200,
-                         workers=experiment.train.workers if device != "cpu" else 1)  # fmt: skip
+    if workers is None:
+        workers = experiment.train.workers if device != "cpu" else 1
+    return replace_train(experiment, epochs=epochs, val_every=2, checkpoint_every=200, workers=workers)
 
 
 def curve(run: Path) -> list[dict[str, float]]:
@@ -123,6 +126,8 @@ def main() -> int:
     parser.add_argument("--demo-data", type=Path, default=Path("data/demo"), help="the demo world, scored on")
     parser.add_argument("--epochs", type=int, default=30, help="epochs of the training world (default 30)")
     parser.add_argument("--device", default="cpu", help="cpu or cuda (default cpu)")
+    parser.add_argument("--workers", type=int, default=None,
+                        help="loader processes (default: the entry's on a GPU, 1 on a CPU)")  # fmt: skip
     parser.add_argument("--write", action="store_true", help="score the last weights and write them with a card")
     parser.add_argument("--no-train", action="store_true",
                         help="with --write: package the run's newest checkpoint as it is (no training step)")
@@ -137,8 +142,9 @@ def main() -> int:
     trained_on = f"{args.device} ({threads} threads)" if args.device == "cpu" else torch.cuda.get_device_name()
     for entry in args.entry or ENTRIES:
         if not args.no_train:
-            experiment = run_experiment(entry, args.world, args.epochs, args.device)
-            run = train(experiment, args.runs / entry, resume="auto", allow_changes=("train.workers",),
+            experiment = run_experiment(entry, args.world, args.epochs, args.device, args.workers)
+            # A run may move between machines (a GPU, then a CPU): the world is the same TRAIN_WORLD in another folder.
+            run = train(experiment, args.runs / entry, resume="auto", allow_changes=("train.workers", "data.root"),
                         device=args.device)  # fmt: skip
             print(f"{entry}: trained to step {run.steps}", flush=True)
         if args.write:

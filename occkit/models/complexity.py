@@ -46,13 +46,15 @@ def sparse_conv_pairs(
         in_coords, out_coords: ``(V_in, 4)`` and ``(V_out, 4)`` ``(batch, d0, d1, d2)`` active sites.
         out_shape: output grid size; kernel_size, stride, padding, dilation: per axis.
     """
-    shape = torch.tensor(out_shape, device=out_coords.device)
+    device = out_coords.device  # every index tensor on the sites' device (a CUDA run counts on the GPU)
+    shape = torch.tensor(out_shape, device=device)
     out_keys = torch.sort(_keys(out_coords, shape)).values
     total = 0
     spatial = in_coords[:, 1:].long()
-    for offset in torch.cartesian_prod(*[torch.arange(k) for k in kernel_size]).reshape(-1, 3):
-        numerator = spatial + torch.tensor(padding) - offset * torch.tensor(dilation)
-        stride_t = torch.tensor(stride)
+    padding_t, dilation_t, stride_t = (torch.tensor(v, device=device) for v in (padding, dilation, stride))
+    offsets = torch.cartesian_prod(*[torch.arange(k, device=device) for k in kernel_size]).reshape(-1, 3)
+    for offset in offsets:
+        numerator = spatial + padding_t - offset * dilation_t
         target = torch.div(numerator, stride_t, rounding_mode="floor")
         ok = (numerator % stride_t == 0).all(1) & (target >= 0).all(1) & (target < shape).all(1)
         candidates = torch.cat([in_coords[ok, :1].long(), target[ok]], dim=1)

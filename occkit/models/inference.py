@@ -23,6 +23,7 @@ Always done: eval mode and the detection branch removed (it runs only in trainin
 
 from __future__ import annotations
 
+import dataclasses
 from collections import Counter
 from collections.abc import Sequence
 
@@ -196,12 +197,49 @@ def compile_dense_stages(model: nn.Module) -> list[str]:
 
     Compiling the forward (not the module) keeps the module's hooks outside the compiled graph. Inductor runs with
     ``freezing``: weights become constants, which lets it fold them and prepack convolution weights for inference.
-    Compilation happens at the first call; on a CPU it needs a C++ compiler.
+    On a CUDA model it also captures CUDA graphs (``reduce-overhead``'s mechanism): a replay launches a stage's
+    kernels in one call, which is what a small model at batch 1 is bound by. Compilation happens at the first call;
+    on a CPU it needs a C++ compiler.
     """
+    parameter = next(model.parameters(), None)
+    graphs = parameter is not None and parameter.device.type == "cuda"
     compiled = []
     for name, child in model.named_children():
         if next(child.parameters(), None) is None or _is_sparse(child):
             continue
-        child.forward = torch.compile(child.forward, options={"freezing": True})
+        forward = torch.compile(child.forward, options={"freezing": True, "triton.cudagraphs": graphs})
+        child.forward = _graph_step(forward) if graphs else forward
         compiled.append(name)
     return compiled
+
+
+def _graph_step(forward):
+    """``forward`` as a CUDA-graph step of its own whose outputs outlive the next replay.
+
+    A replay writes its outputs into the graph's fixed memory, so a stage called twice in one pass (or a caller that
+    keeps the last pass's output) would read overwritten tensors; marking a new step and cloning the outputs is what
+    PyTorch prescribes for a graph whose outputs are kept.
+    """
+
+    def run(*args, **kwargs):
+        torch.compiler.cudagraph_mark_step_begin()
+        output = forward(*args, **kwargs)
+        return _clone_tensors(output)
+
+    return run
+
+
+def _clone_tensors(value):
+    """``value`` with every tensor in it (through dicts, lists, tuples and dataclasses) cloned."""
+    if isinstance(value, torch.Tensor):
+        return value.clone()
+    if isinstance(value, dict):
+        return type(value)((key, _clone_tensors(item)) for key, item in value.items())
+    if isinstance(value, (list, tuple)) and not hasattr(value, "_fields"):
+        return type(value)(_clone_tensors(item) for item in value)
+    if isinstance(value, tuple):  # a named tuple
+        return type(value)(*(_clone_tensors(item) for item in value))
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        fields = {f.name: _clone_tensors(getattr(value, f.name)) for f in dataclasses.fields(value) if f.init}
+        return dataclasses.replace(value, **fields)
+    return value
