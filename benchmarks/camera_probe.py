@@ -35,7 +35,7 @@ import torch
 from occkit import zoo
 from occkit.data.collate import collate
 from occkit.data.dataset import OccupancyDataset
-from occkit.engine.evaluate import evaluate_model, evaluation_dataset
+from occkit.engine.evaluate import evaluation_dataset, score_model
 from occkit.engine.schedule import Schedule
 from occkit.experiment import Experiment, replace_train
 
@@ -126,7 +126,7 @@ def run_probe(probe: str, args: argparse.Namespace) -> dict:
         torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
         optimizer.step()
     train_seconds = time.perf_counter() - started
-    scores = evaluate_model(model.eval(), evaluation_dataset(experiment, args.data, "val"), batch_size=1)
+    scores = score_model(model.eval(), evaluation_dataset(experiment, args.data, "val"), rayiou=False)
     result = {"probe": probe, "steps": args.steps, "lr": cfg.lr, "stride": args.stride, "seed": cfg.seed,
               "miou": scores["miou"], "iou": scores["iou"], "per_class_iou": scores["per_class_iou"],
               "train_seconds": train_seconds}  # fmt: skip

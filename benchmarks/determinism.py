@@ -32,7 +32,6 @@ import contextlib
 import importlib
 import json
 import os
-import platform
 import random
 import signal
 import statistics
@@ -49,6 +48,7 @@ from occkit import zoo
 from occkit.data.collate import collate
 from occkit.data.dataset import OccupancyDataset
 from occkit.engine.checkpoint import latest_checkpoint, load_checkpoint
+from occkit.machine import machine_info
 
 #: The modules whose gathers go through ``take``; part 3 swaps the name in each.
 MODULES_WITH_TAKE = ("occkit.models.view_transform.lss", "occkit.models.dac", "occkit.models.sparse_rules")
@@ -255,12 +255,13 @@ def main() -> None:
     args.data = args.data.resolve()
     _ensure_data(args.data)
     torch.set_num_threads(args.threads)
+    machine = machine_info(args.device)
     result: dict = {
-        "torch": torch.__version__,
+        "torch": machine["torch"],
         "threads": args.threads,
-        "device": args.device if args.device == "cpu" else torch.cuda.get_device_name(),
-        "cpu_count": os.cpu_count(),
-        "processor": platform.processor() or platform.machine(),
+        "device": machine["device"],
+        "cpu_count": machine["cpu_count"],
+        "processor": machine["cpu"],
         "load_average_before": [round(x, 2) for x in os.getloadavg()],
         "steps": args.steps,
         "seed": args.seed,

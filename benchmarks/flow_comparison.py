@@ -29,7 +29,7 @@ import numpy as np
 import torch
 
 from occkit import zoo
-from occkit.engine.evaluate import dataset_ray_origins, evaluate_model, evaluation_dataset, load_trained
+from occkit.engine.evaluate import dataset_ray_origins, evaluation_dataset, load_trained, score_model
 from occkit.engine.train import train
 from occkit.experiment import replace_train
 from occkit.metrics.evaluate import evaluate_predictions, read_prediction, write_prediction
@@ -94,7 +94,7 @@ def run_arm(name: str, args: argparse.Namespace) -> dict:
     predictions.mkdir(exist_ok=True)
     torch.set_flush_denormal(True)
     wall = time.perf_counter()
-    scores = evaluate_model(model, dataset, ray_origins=origins, predictions=predictions)
+    scores = score_model(model, dataset, ray_origins=origins, predictions=predictions)
     eval_wall = time.perf_counter() - wall
     frames = {r.token: (r.scene, r.lidar_path) for r in dataset.records}
     gts = Path(args.data) / "gts"

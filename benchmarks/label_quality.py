@@ -150,7 +150,7 @@ def train_on(labels: str, label_root: Path | None, args: argparse.Namespace) -> 
     import torch
 
     from occkit import zoo
-    from occkit.engine.evaluate import dataset_ray_origins, evaluate_model, evaluation_dataset, load_trained
+    from occkit.engine.evaluate import evaluation_dataset, load_trained, score_model
     from occkit.engine.train import train
     from occkit.experiment import replace_train
 
@@ -169,7 +169,7 @@ def train_on(labels: str, label_root: Path | None, args: argparse.Namespace) -> 
     # Scored on the exact labels whatever it trained on.
     trained = dataclasses.replace(trained, data=dataclasses.replace(trained.data, label_root=None))
     dataset = evaluation_dataset(trained, args.data, "val")
-    scores = evaluate_model(model, dataset, batch_size=1, workers=1, ray_origins=dataset_ray_origins(dataset))
+    scores = score_model(model, dataset, workers=1)
     result = {"labels": labels, "label_root": label_folder, "steps": args.train_steps, "train_seconds": seconds,
               "threads": torch.get_num_threads(), "frames": scores["frames"],
               **{key: scores[key] for key in ("miou", "iou", "rayiou", "per_class_iou")}}  # fmt: skip

@@ -12,12 +12,12 @@ from __future__ import annotations
 
 import argparse
 import json
-import platform
 import time
 from pathlib import Path
 
 import numpy as np
 
+from occkit.machine import host
 from occkit.metrics.confusion import confusion_matrix
 
 GOLDEN = Path(__file__).resolve().parents[1] / "tests" / "golden" / "occ3d_metrics"
@@ -77,12 +77,13 @@ def main() -> None:
             f"{mode:12s} official {official:7.3f} ms/frame   occkit {occkit:7.3f} ms/frame   x{official / occkit:5.1f}"
         )
 
+    machine = host()
     report = {
         "frames": len(gt),
         "frame_shape": list(gt.shape[1:]),
         "repeats": args.repeats,
         "statistic": "median seconds per frame x 1e3, one thread",
-        "machine": {"processor": platform.processor() or platform.machine(), "python": platform.python_version()},
+        "machine": {"processor": machine["cpu"], "python": machine["python"]},
         "modes": results,
     }
     args.out.parent.mkdir(parents=True, exist_ok=True)

@@ -73,7 +73,9 @@ def outputs(name: str, root: Path) -> dict[str, torch.Tensor]:
     torch.manual_seed(0)
     model = zoo.build(name).train()
     torch.manual_seed(0)
-    output = model(batch)
+    # A recurrent history trains on streams: the first frame of its stream, with an empty memory, as occkit train.
+    streamed = model.temporal is not None and model.temporal.cfg.streamed_training
+    output = model(batch, memory=model.stream()) if streamed else model(batch)
     losses = model.loss(output, batch)
     sum(losses.values()).backward()
     found = {**_tensors(output, "train"), **_tensors(losses, "loss")}

@@ -11,8 +11,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
 import statistics
 import time
 from pathlib import Path
@@ -20,6 +18,7 @@ from pathlib import Path
 import numba
 import numpy as np
 
+from occkit.machine import host
 from occkit.metrics.rayiou import rayiou
 
 VAL_FRAMES = 6019
@@ -51,12 +50,13 @@ def main() -> None:
         result = rayiou(gts, preds, origins)
         per_frame.append((time.perf_counter() - start) / len(gts))
     median = statistics.median(per_frame)
+    machine = host()
     report = {
         "machine": {
-            "cpu": platform.processor() or platform.machine(),
-            "cores": os.cpu_count(),
+            "cpu": machine["cpu"],
+            "cores": machine["cpu_count"],
             "numba_threads": numba.get_num_threads(),
-            "python": platform.python_version(),
+            "python": machine["python"],
             "numpy": np.__version__,
             "numba": numba.__version__,
         },

@@ -44,7 +44,7 @@ from pathlib import Path
 import torch
 
 from occkit import zoo
-from occkit.engine.evaluate import dataset_ray_origins, evaluate_model, evaluation_dataset, load_trained
+from occkit.engine.evaluate import evaluation_dataset, load_trained, score_model
 from occkit.engine.train import train
 from occkit.experiment import Experiment, replace_train
 from occkit.figure import new_figure, save_figure
@@ -214,7 +214,7 @@ def run_arm(name: str, seed: int, args: argparse.Namespace) -> dict:
     dataset = evaluation_dataset(experiment, args.data, "val")
     torch.set_flush_denormal(True)
     wall, cpu = time.perf_counter(), _cpu_seconds()
-    scores = evaluate_model(model, dataset, batch_size=1, workers=1, ray_origins=dataset_ray_origins(dataset))
+    scores = score_model(model, dataset, workers=1)
     result = {
         "arm": name, "entry": arm.entry, "description": arm.description, "seed": seed, "steps": run.steps,
         **{key: scores[key] for key in METRICS}, "per_class_iou": scores["per_class_iou"], "frames": scores["frames"],

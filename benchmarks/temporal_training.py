@@ -32,7 +32,7 @@ from pathlib import Path
 import torch
 
 from occkit import zoo
-from occkit.engine.evaluate import dataset_ray_origins, evaluate_model, evaluation_dataset, load_trained
+from occkit.engine.evaluate import dataset_ray_origins, evaluation_dataset, load_trained, score_model
 from occkit.engine.train import train
 from occkit.experiment import replace_train
 from occkit.sim.generate import SimConfig, simulate_dataset
@@ -63,13 +63,13 @@ def _arm(name: str, entry: str, sampler: str, args) -> dict:
     dataset = evaluation_dataset(experiment, args.data, "val")
     torch.set_flush_denormal(True)
     origins = dataset_ray_origins(dataset)
-    scores = evaluate_model(model, dataset, batch_size=1, workers=1, ray_origins=origins)
+    scores = score_model(model, dataset, workers=1, ray_origins=origins)
     result = {key: scores[key] for key in ("miou", "iou", "rayiou", "per_class_iou", "frames")}
     result.update(entry=entry, sampler=sampler, steps=run.steps, train_seconds=train_seconds)
     if model.temporal is not None:
         # The same weights with an empty history on every frame: what the history adds inside the model.
         alone = _without_history(model)
-        empty = evaluate_model(alone, dataset, batch_size=1, workers=1, ray_origins=origins)
+        empty = score_model(alone, dataset, workers=1, ray_origins=origins)
         result["empty_history"] = {key: empty[key] for key in ("miou", "iou", "rayiou")}
     cached.write_text(json.dumps(result, indent=2) + "\n")
     return result

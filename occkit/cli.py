@@ -238,28 +238,11 @@ def _run_index(args: argparse.Namespace) -> int:
     output_file(args.out, "--out", suffix=".npz", what="an occkit index")
     if args.from_info is not None:
         return _index_from_info(args)
-    from tqdm import tqdm
 
-    from occkit.data.index import build_index, save_index
-    from occkit.data.splits import read_split_file, split_scenes
+    from occkit.data.index import build_split_index, save_index
 
-    if args.split_file is not None:
-        scenes = read_split_file(args.split_file, None if args.split == "all" else args.split)
-    else:
-        scenes = None if args.split == "all" else split_scenes(args.root, args.version, args.split)
-    bar = None
-
-    def progress(done: int, total: int) -> None:
-        nonlocal bar
-        if bar is None:  # the total is known once the tables are read
-            bar = tqdm(total=total, unit="frame", desc="index")
-        bar.update(done - bar.n)
-
-    try:
-        records = build_index(args.root, args.version, max_sweeps=args.max_sweeps, scenes=scenes, progress=progress)
-    finally:
-        if bar is not None:
-            bar.close()
+    with _FrameBar("index") as progress:
+        records = build_split_index(args.root, args.version, args.split, args.split_file, args.max_sweeps, progress)
     meta = {"version": args.version, "root": str(args.root), "max_sweeps": args.max_sweeps, "split": args.split}
     save_index(records, args.out, meta)
     labelled = sum(record.occ_path is not None for record in records)
@@ -340,52 +323,27 @@ def _add_eval_preds(parser: argparse.ArgumentParser) -> None:
 
 
 def _run_eval_preds(args: argparse.Namespace) -> int:
-    from tqdm import tqdm
 
     from occkit.label_space import label_space
-    from occkit.metrics.evaluate import evaluate_predictions, find_gt_labels, markdown_table, write_report
+    from occkit.metrics.evaluate import evaluate_prediction_folder, markdown_table, write_report
 
     input_folder(args.gt, "--gt")
     input_folder(args.preds, "--preds")
     output_folder(args.out, "--out")
-    space = label_space(args.label_space)
-    if args.rayiou and not space.rayiou:
-        raise ValueError(f"--rayiou: RayIoU is not defined for {space.name} labels (only for Occ3D's)")
-    if args.mask is not None:
-        space.check_mask(None if args.mask == "none" else args.mask)
-    records = None
-    if args.nuscenes is not None:
-        from occkit.data.index import build_index
-
-        records = build_index(args.nuscenes, args.version, max_sweeps=0)
-    elif space.name != "occ3d":
-        raise ValueError(f"--label-space {space.name}: its files are named after each frame's LiDAR file; give the "
-                         "dataset's tables with --nuscenes ROOT --version V")  # fmt: skip
-    origins = args.ray_origins
-    if args.rayiou and origins is None:
-        if records is None:
-            raise ValueError("--rayiou needs --ray-origins FILE.npz or --nuscenes ROOT --version V for the ray origins")
-        origins = _ray_origins(records)
-    # With the tables, the frames are theirs; else (Occ3D) every <scene>/<token> of the tree.
-    frames = None if records is None else {r.token: (r.scene, r.lidar_path) for r in records}
-    if frames is not None and space.name == "occ3d":  # an Occ3D tree may cover a subset of the tables' frames
-        frames = {token: frame for token, frame in frames.items() if (args.gt / frame[0] / token).is_dir()}
-    count = len(find_gt_labels(args.gt, space, frames))
+    if args.rayiou and not label_space(args.label_space).rayiou:
+        raise UsageError(f"--rayiou: RayIoU is not defined for {args.label_space} labels (only for Occ3D's)")
+    if args.rayiou and args.ray_origins is None and args.nuscenes is None:
+        raise UsageError("--rayiou needs --ray-origins FILE.npz or --nuscenes ROOT --version V for the ray origins")
+    if args.label_space != "occ3d" and args.nuscenes is None:
+        raise UsageError(f"--label-space {args.label_space}: its files are named after each frame's LiDAR file; give "
+                         "the dataset's tables with --nuscenes ROOT --version V")  # fmt: skip
     notes: list[str] = []  # printed once the progress bar is done
-    with tqdm(total=count, unit="frame", desc="eval") as bar:
-        result = evaluate_predictions(
-            args.gt,
-            args.preds,
-            mask=args.mask or "default",
-            ray_origins=origins,
-            compute_rayiou=args.rayiou,
-            allow_missing=args.allow_missing,
-            workers=args.workers,
-            progress=bar.update,
-            space=space,
-            frames=frames,
-            note=notes.append,
-        )
+    with _FrameBar("eval") as progress:
+        result = evaluate_prediction_folder(
+            args.gt, args.preds, args.label_space, mask=args.mask or "default", rayiou=args.rayiou,
+            ray_origins=args.ray_origins, nuscenes=args.nuscenes, version=args.version,
+            allow_missing=args.allow_missing, workers=args.workers, progress=progress, note=notes.append,
+        )  # fmt: skip
     for note in notes:
         print(f"note: {note}")
     print(markdown_table(result), end="")
@@ -394,14 +352,30 @@ def _run_eval_preds(args: argparse.Namespace) -> int:
     return 0
 
 
-def _ray_origins(records) -> dict:
-    """RayIoU origins of every key frame of index records (the nuScenes tables' key-frame poses)."""
-    from occkit.metrics.origins import PoseRecord, ray_origins
-
-    return ray_origins([PoseRecord(r.token, r.scene, r.lidar2ego, r.ego2global) for r in records])
-
-
 # ----------------------------------------------------------------------------------------------------- helpers
+class _FrameBar:
+    """A progress bar over frames, called with (done, total); it opens at the first call, once the library knows the
+    total, so an error before any frame prints no bar."""
+
+    def __init__(self, desc: str) -> None:
+        self.desc = desc
+        self.bar = None
+
+    def __call__(self, done: int, total: int) -> None:
+        from tqdm import tqdm
+
+        if self.bar is None:
+            self.bar = tqdm(total=total, unit="frame", desc=self.desc)
+        self.bar.update(done - self.bar.n)
+
+    def __enter__(self) -> _FrameBar:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if self.bar is not None:
+            self.bar.close()
+
+
 def _write_json(path: Path, payload: dict) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(payload, indent=2) + "\n")
@@ -439,15 +413,6 @@ def _add_experiment_overrides(parser: argparse.ArgumentParser) -> None:
                              "(repeatable)")  # fmt: skip
 
 
-def _load_trained(args: argparse.Namespace, device):
-    from occkit import zoo
-    from occkit.engine.evaluate import load_trained
-
-    if args.config is not None:
-        return load_trained(args.ckpt, device, experiment=zoo.load_experiment(args.config, args.set))
-    return load_trained(args.ckpt, device, overrides=args.set)
-
-
 def _add_model_source(group, parser: argparse.ArgumentParser, ckpt_help: str) -> None:
     """``--ckpt FILE`` or ``--weights FILE|synthetic`` (in ``group``, which makes them exclusive) and ``--model``."""
     group.add_argument("--ckpt", type=Path, metavar="FILE", help=ckpt_help)
@@ -460,9 +425,10 @@ def _add_model_source(group, parser: argparse.ArgumentParser, ckpt_help: str) ->
                              "converted for)")  # fmt: skip
 
 
-def _model_source(args: argparse.Namespace, entry: str | None = None):
-    """The ``ModelSource`` of ``--ckpt`` / ``--weights`` (+ ``--model``, or ``entry``), checked; None when neither is
-    given. A shipped entry without weights is refused here, before any other work."""
+def _model_source(args: argparse.Namespace, entry: str | None = None, config: str | None = None):
+    """The ``ModelSource`` of ``--ckpt`` (run with ``config`` when given) / ``--weights`` (+ ``--model``, or
+    ``entry``), checked; None when neither is given. A shipped entry without weights is refused here, before any other
+    work."""
     from occkit.model_source import ModelSource
     from occkit.shipped import SYNTHETIC, card, shipped_entries
 
@@ -476,7 +442,7 @@ def _model_source(args: argparse.Namespace, entry: str | None = None):
         if entry is not None:
             raise UsageError("--model goes with --weights; a checkpoint names its own model (use --config to run "
                              "it with another experiment)")  # fmt: skip
-        return ModelSource(ckpt=str(args.ckpt))
+        return ModelSource(ckpt=str(args.ckpt), config=config)
     if args.weights == SYNTHETIC:
         if entry is None:
             raise UsageError(f"--weights {SYNTHETIC} needs --model ENTRY (shipped: "
@@ -541,78 +507,38 @@ def _add_eval(parser: argparse.ArgumentParser) -> None:
 
 
 def _run_eval(args: argparse.Namespace) -> int:
-    from tqdm import tqdm
+    from occkit.engine.jobs import evaluate_source
+    from occkit.metrics.evaluate import markdown_table
 
-    from occkit.engine import distributed
-    from occkit.engine.evaluate import dataset_ray_origins, evaluate_model, evaluation_dataset
-    from occkit.metrics.evaluate import markdown_table, write_report
-
-    _check_trained_run_args(args)
-    # Under torchrun every rank scores its share of the frames; the counts are summed, rank 0 writes the report.
-    context = distributed.setup(args.device)
-    try:
-        model, experiment = _load_model(args, context.device)
-        dataset = evaluation_dataset(experiment, args.data, args.split or experiment.train.val_split)
-        predictions = args.out / "predictions" if args.save_predictions else None
-        if context.is_main:
-            _prepare_out(args.out)
-            if predictions is not None:
-                predictions.mkdir(exist_ok=True)
-        distributed.barrier()
-        origins = None if args.no_rayiou or not dataset.space.rayiou else dataset_ray_origins(dataset)
-        mask = "default" if args.mask is None else None if args.mask == "none" else args.mask
-        share = len(range(context.rank, len(dataset), context.world_size))
-        with tqdm(total=share, unit="frame", desc="eval", disable=not context.is_main) as bar:
-            result = evaluate_model(model, dataset, args.batch_size, args.workers, context, predictions=predictions,
-                                    ray_origins=origins, progress=bar.update, mask=mask)  # fmt: skip
-        if context.is_main:
-            # The keys of occkit eval-preds' report (every frame has its prediction here).
-            result.update(missing_predictions=0, checkpoint=str(_model_source(args, _weights_entry(args))),
-                          split=dataset.config.split, root=dataset.config.root)  # fmt: skip
-            print(markdown_table(result), end="")
-            if result["skipped"]:
-                print(f"note: {result['skipped']} frame(s) failed to load and were skipped (data.on_error=skip): "
-                      f"the scores are over the {result['frames']} others")
-            for path in write_report(result, args.out).values():
-                print(f"wrote {path}")
-        distributed.barrier()  # every rank leaves the group together, none while another still uses it
-    finally:
-        distributed.teardown()
+    source = _trained_model_source(args)
+    mask = "default" if args.mask is None else None if args.mask == "none" else args.mask
+    outcome = evaluate_source(source, args.out, data=args.data, split=args.split, overrides=args.set, mask=mask,
+                              rayiou=not args.no_rayiou, save_predictions=args.save_predictions,
+                              batch_size=args.batch_size, workers=args.workers, device=args.device)  # fmt: skip
+    if outcome is None:  # a torchrun rank other than 0: rank 0 reports
+        return 0
+    result, paths = outcome
+    print(markdown_table(result), end="")
+    if result["skipped"]:
+        print(f"note: {result['skipped']} frame(s) failed to load and were skipped (data.on_error=skip): the scores "
+              f"are over the {result['frames']} others")
+    for path in paths.values():
+        print(f"wrote {path}")
     return 0
 
 
-def _check_trained_run_args(args: argparse.Namespace) -> None:
-    """The options ``eval`` and ``predict`` share, checked before the model is loaded."""
+def _trained_model_source(args: argparse.Namespace):
+    """``eval`` / ``predict``: the model source of ``--ckpt`` (with ``--config``) or ``--weights`` (with ``--model``
+    or ``--config``, a zoo name or YAML), and the other options they share, checked before the model is loaded."""
     if args.weights is not None and args.model is not None and args.config is not None:
         raise UsageError("--model and --config both name the experiment to run --weights with: give one")
-    _model_source(args, _weights_entry(args))
+    entry = args.model or (args.config if args.weights is not None else None)
+    source = _model_source(args, entry, config=args.config if args.ckpt is not None else None)
     if args.data is not None:
         input_folder(args.data, "--data")
     output_folder(args.out, "--out")
     check_device(args.device)
-
-
-def _weights_entry(args: argparse.Namespace) -> str | None:
-    """The experiment that runs ``--weights``: ``--model``, or ``--config`` (a zoo name or YAML)."""
-    return args.model or (args.config if args.weights is not None else None)
-
-
-def _load_model(args: argparse.Namespace, device):
-    """``eval`` / ``predict``: the checkpoint's model (with ``--config``, run by that experiment), or the model of
-    ``--model`` / ``--config`` with ``--weights`` (a file, else the entry it was converted for; or ``synthetic``),
-    strictly loaded; and its experiment."""
-    if args.ckpt is not None:
-        return _load_trained(args, device)
-    try:
-        return _model_source(args, _weights_entry(args)).load(device, args.set)
-    except ValueError as error:
-        raise UsageError(str(error)) from None
-
-
-def _prepare_out(out: Path) -> None:
-    from occkit.engine.checkpoint import ensure_writable
-
-    ensure_writable(out)
+    return source
 
 
 # ----------------------------------------------------------------------------------------------------- predict
@@ -628,34 +554,14 @@ def _add_predict(parser: argparse.ArgumentParser) -> None:
 
 
 def _run_predict(args: argparse.Namespace) -> int:
-    from tqdm import tqdm
+    from occkit.engine.jobs import predict_source
 
-    from occkit.engine import distributed
-    from occkit.engine.evaluate import evaluation_dataset
-    from occkit.engine.predict import predict_to_folder
-    from occkit.outputs import OutputLock
-
-    _check_trained_run_args(args)
-    context = distributed.setup(args.device)  # under torchrun each rank writes the files of its share
-    # One run at a time per folder, refused before the model is loaded; rank 0 holds the lock for the whole group.
-    lock = OutputLock(args.out, "occkit predict", enabled=context.is_main)
-    try:
-        lock.acquire()
-        model, experiment = _load_model(args, context.device)
-        dataset = evaluation_dataset(experiment, args.data, args.split, labels=False)
-        if context.is_main:
-            _prepare_out(args.out)
-        distributed.barrier()
-        share = len(range(context.rank, len(dataset), context.world_size))
-        with tqdm(total=share, unit="frame", desc="predict", disable=not context.is_main) as bar:
-            counts = predict_to_folder(model, dataset, args.out, args.batch_size, args.workers, context, bar.update)
-        distributed.barrier()
-        if context.is_main:
-            skipped = f"; {counts['skipped']} frame(s) failed to load and were skipped" if counts["skipped"] else ""
-            print(f"wrote {counts['written']} predictions to {args.out}{skipped} (score them with occkit eval-preds)")
-    finally:
-        lock.release()
-        distributed.teardown()
+    source = _trained_model_source(args)
+    counts = predict_source(source, args.data, args.split, args.out, overrides=args.set, batch_size=args.batch_size,
+                            workers=args.workers, device=args.device)  # fmt: skip
+    if counts is not None:  # rank 0 of a torchrun group, or the only process
+        skipped = f"; {counts['skipped']} frame(s) failed to load and were skipped" if counts["skipped"] else ""
+        print(f"wrote {counts['written']} predictions to {args.out}{skipped} (score them with occkit eval-preds)")
     return 0
 
 
@@ -1003,7 +909,6 @@ def _add_view(parser: argparse.ArgumentParser) -> None:
 
 def _run_view(args: argparse.Namespace) -> int:
     import signal
-    import time
 
     input_folder(args.data, "--data")
     if args.pred is not None:
@@ -1023,7 +928,7 @@ def _run_view(args: argparse.Namespace) -> int:
         check_port_free(args.bind, args.web_port, "--web-port")
         check_port_free(args.bind, args.grpc_port, "--grpc-port")
     try:
-        from occkit.viz.recording import ViewConfig, new_recording, open_scene, record_scene, start_sink
+        from occkit.viz.recording import ViewConfig, view_scene
     except ModuleNotFoundError as error:
         if error.name != "rerun":
             raise
@@ -1042,31 +947,13 @@ def _run_view(args: argparse.Namespace) -> int:
         # `kill` as well as Ctrl-C stops the child server: SystemExit runs the `finally` below.
         signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
     try:
-        scene = open_scene(config)
-        recording = new_recording()
-        start_sink(recording, scene.blueprint(), save=args.save, server=server)
-        start = time.perf_counter()
-        frames = record_scene(scene, recording, progress=print)
-        recording.flush()
-        seconds = time.perf_counter() - start
-        if args.save is not None:
-            recording.disconnect()  # closes the file
-            print(f"wrote {len(frames)} frames of {scene.name} to {args.save} ({args.save.stat().st_size / 1e6:.1f} "
-                  f"MB, {seconds:.1f} s); open it with: rerun {args.save}")
-            return 0
-        if server is None:
-            print(f"sent {len(frames)} frames of {scene.name} to the viewer ({seconds:.1f} s)")
-            return 0
-        print(f"serving {len(frames)} frames of {scene.name} on {args.bind}: open {server.web_url} in a browser "
-              "(Ctrl-C stops the server)")
-        while server.process.poll() is None:
-            time.sleep(1)
-        raise OSError(f"the rerun server stopped: {server.last_words()}")
+        view_scene(config, save=args.save, server=server)
     except KeyboardInterrupt:
-        return 0
+        pass
     finally:
         if server is not None:
             server.stop()
+    return 0
 
 
 Command = tuple[str, Callable[[argparse.ArgumentParser], None], Callable[[argparse.Namespace], int]]

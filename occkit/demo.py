@@ -22,7 +22,7 @@ from tqdm import tqdm
 
 from occkit import zoo
 from occkit.data.collate import collate
-from occkit.engine.evaluate import dataset_ray_origins, evaluate_model, evaluation_dataset, load_trained
+from occkit.engine.evaluate import evaluation_dataset, load_trained, score_model
 from occkit.engine.train import train
 from occkit.errors import UsageError
 from occkit.experiment import replace_train
@@ -242,8 +242,7 @@ def _train_score_report(out: Path, data: Path, models: dict[str, int], started: 
         dataset = evaluation_dataset(experiment, data, "val")
         torch.set_flush_denormal(True)  # as during training: subnormals are an order of magnitude slower on CPUs
         _say(f"scoring {name} on {len(dataset)} held-out frames")
-        scores = evaluate_model(model, dataset, batch_size=1, workers=workers,
-                                ray_origins=dataset_ray_origins(dataset))
+        scores = score_model(model, dataset, workers=workers)
         results[name] = {**scores, "steps": run.steps, "train_seconds": train_seconds}
         trained[name], datasets[name] = model, dataset
         _say(f"{name}: mIoU {100 * scores['miou']:.1f}, IoU {100 * scores['iou']:.1f}, "

@@ -7,7 +7,8 @@ software and hardware that produced them.
 from __future__ import annotations
 
 import importlib.metadata
-import platform
+
+from occkit.machine import compute_devices, host
 
 __all__ = ["environment_report", "format_environment_report"]
 
@@ -27,18 +28,6 @@ def _package_versions() -> dict[str, str]:
         if name.lower().startswith("spconv"):
             versions[name] = dist.version
     return versions
-
-
-def _devices() -> dict:
-    import torch
-
-    cuda = torch.cuda.is_available()
-    return {
-        "cuda_available": cuda,
-        "cuda_version": torch.version.cuda,
-        "gpus": [torch.cuda.get_device_name(i) for i in range(torch.cuda.device_count())] if cuda else [],
-        "cpu_threads": torch.get_num_threads(),
-    }
 
 
 def _sparse_backend() -> dict:
@@ -69,12 +58,13 @@ def environment_report() -> dict:
     from occkit.classes import TAXONOMIES
     from occkit.label_space import LABEL_SPACES
 
+    machine = host()
     return {
         "occkit": __version__,
-        "python": platform.python_version(),
-        "platform": platform.platform(),
+        "python": machine["python"],
+        "platform": machine["platform"],
         "packages": _package_versions(),
-        "devices": _devices(),
+        "devices": compute_devices(),
         "sparse_conv": _sparse_backend(),
         "determinism": _determinism(),
         "grids": {

@@ -28,7 +28,6 @@ timed in interleaved pairs in one run, with their ratio.
 
 from __future__ import annotations
 
-import dataclasses
 import statistics
 import tempfile
 import time
@@ -45,6 +44,7 @@ from occkit import zoo
 from occkit.config import to_dict
 from occkit.engine.checkpoint import check_compatible
 from occkit.engine.evaluate import load_trained
+from occkit.engine.reference_frame import SyntheticWorld, load_reference_frame
 from occkit.errors import UsageError, require_module
 from occkit.models.deployment import DeployedNetwork, deploy
 from occkit.outputs import check_report_file, report_beside, write_report
@@ -152,49 +152,16 @@ def load_sample(experiment: Any, data: str | Path | None = None, index: int | No
         experiment: from :func:`load_model`.
         data: a nuScenes-layout dataset root; None simulates a one-scene synthetic world (two key frames, six with
             ``scene``; 400 x 225 images) in a temporary folder.
-        index: key frame of the whole dataset (split ``all``); None takes the second (the first of a one-frame
-            dataset), which has a full set of earlier LiDAR sweeps when the first scene has two key frames or more.
+        index: key frame of the whole dataset (split ``all``); None takes the last, which has the longest history of
+            earlier LiDAR sweeps.
         scene: also load the key frame's scene.
 
     Returns:
         The batch, a description of where it came from, and the scene's frames (empty without ``scene``).
     """
-    from occkit.data.collate import collate
-    from occkit.data.dataset import OccupancyDataset
-
-    if index is not None and index < 0:
-        raise ValueError(f"the sample index must be >= 0, got {index}")
-    settings = {"split": "all", "augment": False, "occupancy": False, "boxes": False, "depth_downsample": 0,
-                "history": 0}
-
-    def key_frame(root: Path) -> tuple[Batch, dict[str, Any], list[Batch]]:
-        dataset = OccupancyDataset(dataclasses.replace(experiment.data, root=str(root), index=None, **settings))
-        if index is not None and index >= len(dataset):
-            raise ValueError(f"--sample {index}: {root} has {len(dataset)} key frames, 0 to {len(dataset) - 1}")
-        frame = min(1, len(dataset) - 1) if index is None else index
-        record = dataset.records[frame]
-        frames = []
-        if scene:
-            order = next(indices for indices in dataset.scene_indices() if frame in indices)
-            frames = [collate([dataset[i]]) for i in order]
-        source = {"index": frame, "token": record.token, **({"scene": record.scene, "frames": len(frames)}
-                                                            if scene else {})}  # fmt: skip
-        return collate([dataset[frame]]), source, frames
-
-    if data is not None:
-        if not Path(data).is_dir():
-            raise FileNotFoundError(f"dataset root {data} does not exist")
-        batch, source, frames = key_frame(Path(data))
-        return batch, {"data": str(data), **source}, frames
-    from occkit.sim.generate import SimConfig, simulate_dataset
-
-    with tempfile.TemporaryDirectory() as folder:
-        root = Path(folder) / "world"
-        world = SimConfig(scenes=1, frames=6 if scene else 2, image_size=(400, 225), version=experiment.data.version)
-        simulate_dataset(world, root)
-        batch, source, frames = key_frame(root)
-    return batch, {"data": f"synthetic world (1 scene of {world.frames} key frames, 400x225), generated", **source}, \
-        frames
+    world = SyntheticWorld(image_size=(400, 225), frames=6 if scene else 2)
+    frame = load_reference_frame(experiment.data, data, world, index=index, scene=scene)
+    return frame.batch, frame.source, frame.scene
 
 
 # ----------------------------------------------------------------------------------------------------- export

@@ -33,12 +33,17 @@ class ModelSource:
     entry: str | None = None
     """With ``weights``: the zoo entry (or experiment YAML) whose model and experiment run them; for a file, default
     the entry it was converted for."""
+    config: str | None = None
+    """With ``ckpt``: a zoo entry or experiment YAML to run the checkpoint with instead of its saved experiment (other
+    data settings); its model must be the checkpoint's."""
 
     def __post_init__(self) -> None:
         if (self.ckpt is None) == (self.weights is None):
             raise ValueError("a model comes from a checkpoint or from weights: give exactly one")
         if self.ckpt is not None and self.entry is not None:
             raise ValueError("a checkpoint names its own model; a zoo entry goes with weights")
+        if self.weights is not None and self.config is not None:
+            raise ValueError("weights run with their zoo entry's experiment: name it as the entry, not as a config")
         if self.weights == SYNTHETIC and self.entry is None:
             raise ValueError(f"the {SYNTHETIC} weights are per zoo entry: name it (shipped: "
                              f"{', '.join(shipped_entries()) or 'none yet'})")  # fmt: skip
@@ -86,6 +91,8 @@ class ModelSource:
         from occkit.engine.evaluate import load_trained
         from occkit.shipped import load_shipped
 
+        if self.ckpt is not None and self.config is not None:
+            return load_trained(self.ckpt, device, experiment=zoo.load_experiment(self.config, overrides))
         if self.ckpt is not None:
             return load_trained(self.ckpt, device, overrides=overrides)
         entry = self.entry

@@ -7,6 +7,8 @@ a message naming the file and the refused global. Before any of it, the file's d
 (:mod:`occkit.archives`), and after it every tensor must be a dense one with its data. The pretrained backbones
 (:mod:`occkit.models.pretrained`), the checkpoint converter (:mod:`occkit.convert`) and occkit's own checkpoints
 (:mod:`occkit.engine.checkpoint`) read through here; :func:`check_finite` refuses weights that are NaN or infinite.
+:func:`read_checkpoint` finds the state dict in any of the checkpoint files occkit reads (mmcv's, occkit's own,
+``.safetensors``, bare state dicts), without knowing any model.
 """
 
 from __future__ import annotations
@@ -14,6 +16,7 @@ from __future__ import annotations
 import re
 import warnings
 from collections.abc import Mapping
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -23,10 +26,22 @@ from torch import Tensor
 from occkit.archives import check_torch_file
 from occkit.arguments import format_bytes
 
-__all__ = ["WEIGHTS_FORMAT", "load_torch_file", "check_finite", "read_safetensors"]
+__all__ = [
+    "WEIGHTS_FORMAT",
+    "ReferenceCheckpoint",
+    "load_torch_file",
+    "check_finite",
+    "read_safetensors",
+    "read_checkpoint",
+    "strip_wrappers",
+]
 
 #: ``format`` in the metadata of occkit's ``.safetensors`` weights (``occkit convert``'s output, the shipped weights).
 WEIGHTS_FORMAT = "occkit-weights/1"
+
+#: How the ``format`` marker of occkit's run checkpoints (``occkit.engine.checkpoint.FORMAT``) begins. Matched by
+#: prefix, not imported: the engine reads its checkpoints through this module, so this module sits below it.
+_CHECKPOINT_FORMAT_PREFIX = "occkit-checkpoint/"
 
 
 def _numpy_globals() -> list:
@@ -162,3 +177,93 @@ def read_safetensors(path: str | Path) -> tuple[dict[str, Tensor], dict[str, str
     except (SafetensorError, OSError, ValueError) as error:
         raise ValueError(f"{path} is not a readable .safetensors file: {' '.join(str(error).split())}") from error
     return state, metadata
+
+
+# ----------------------------------------------------------------------------------------------------- checkpoints
+@dataclass
+class ReferenceCheckpoint:
+    """The tensors of a checkpoint file and what else it held."""
+
+    path: Path
+    state: dict[str, Tensor]
+    """The model's state dict, ``module.`` prefixes stripped."""
+    ignored: dict[str, str]
+    """Top-level entries besides the weights (mmcv's ``meta``, ``optimizer``, ...) -> what they are."""
+    metadata: dict[str, str]
+    """A ``.safetensors`` file's metadata (empty otherwise)."""
+    occkit: bool
+    """An occkit checkpoint or converted weights (occkit's names)."""
+    architecture: str | None = None
+    """The architecture an occkit file says its weights are of (None: not said)."""
+
+
+#: What the top-level entries of mmcv / occkit checkpoints besides the weights hold.
+_TOP_LEVEL = {
+    "meta": "mmcv run metadata: config text, versions, epoch",
+    "optimizer": "optimizer state, for training only",
+    "updates": "EMA update count, for training only",
+    "epoch": "epoch counter",
+    "iter": "iteration counter",
+    "lr_scheduler": "scheduler state, for training only",
+    "scaler": "mixed-precision loss scale, for training only",
+}
+
+
+def strip_wrappers(state: Mapping[str, Any]) -> dict[str, Any]:
+    """Keys without DistributedDataParallel's ``module.`` prefix."""
+    return {key.removeprefix("module."): value for key, value in state.items()}
+
+
+def _tensor_dict(state: Any, path: Path, what: str) -> dict[str, Tensor]:
+    if not isinstance(state, Mapping) or not state:
+        raise ValueError(f"{path}: {what} is not a non-empty dict of tensors")
+    wrong = [key for key, value in state.items() if not isinstance(value, Tensor)]
+    if wrong:
+        raise ValueError(f"{path}: {what} holds non-tensor entries ({', '.join(map(str, wrong[:4]))})")
+    return strip_wrappers(state)
+
+
+def read_checkpoint(path: str | Path) -> ReferenceCheckpoint:
+    """The state dict of a checkpoint file, read without unpickling code.
+
+    Reads ``.safetensors`` files, occkit checkpoints (their EMA weights when they have them), mmcv checkpoints
+    (``{'meta', 'state_dict', 'optimizer'}``, the EMA hook's ``epoch_N_ema.pth`` too) and bare state dicts. Weights
+    that are NaN or infinite are refused (:func:`~occkit.weight_files.check_finite`): converted or loaded, they
+    would score an mIoU of 0 without any error.
+
+    Raises:
+        FileNotFoundError: no such file.
+        ValueError: the file cannot be read safely, holds no state dict, or weights that are not finite (the message
+            names the file and why).
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"checkpoint {path} does not exist")
+    checkpoint = _read_state(path)
+    check_finite(checkpoint.state, path)
+    return checkpoint
+
+
+def _read_state(path: Path) -> ReferenceCheckpoint:
+    """:func:`read_checkpoint` without its checks of the values."""
+    if path.suffix == ".safetensors":
+        state, metadata = read_safetensors(path)
+        return ReferenceCheckpoint(path, state, {}, metadata, occkit=metadata.get("format") == WEIGHTS_FORMAT,
+                                   architecture=metadata.get("architecture"))  # fmt: skip
+    payload = load_torch_file(path)
+    if isinstance(payload, Mapping) and str(payload.get("format", "")).startswith(_CHECKPOINT_FORMAT_PREFIX):
+        key = "ema" if payload.get("ema") is not None else "model"
+        ignored = {k: "occkit run state" for k in payload if k != key}
+        return ReferenceCheckpoint(path, _tensor_dict(payload[key], path, f"its '{key}'"), ignored, {}, occkit=True,
+                                   architecture=payload.get("architecture"))  # fmt: skip
+    if isinstance(payload, Mapping):
+        for key in ("state_dict", "model"):
+            if isinstance(payload.get(key), Mapping):
+                ignored = {k: _TOP_LEVEL.get(k, "not model weights") for k in payload if k != key}
+                state = _tensor_dict(payload[key], path, f"its '{key}'")
+                return ReferenceCheckpoint(path, state, ignored, {}, occkit=False)
+        if payload and all(isinstance(v, Tensor) for v in payload.values()):
+            return ReferenceCheckpoint(path, _tensor_dict(payload, path, "the file"), {}, {}, occkit=False)
+        top = ", ".join(map(str, list(payload)[:6]))
+        raise ValueError(f"{path} holds no state dict (top-level keys: {top}; expected 'state_dict' or tensors)")
+    raise ValueError(f"{path} holds a {type(payload).__name__}, not a checkpoint dict")

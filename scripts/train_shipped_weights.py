@@ -26,7 +26,7 @@ import torch
 
 from occkit import zoo
 from occkit.demo import DEMO_WORLD
-from occkit.engine.evaluate import dataset_ray_origins, evaluate_model, evaluation_dataset, load_trained
+from occkit.engine.evaluate import evaluation_dataset, load_trained, score_model
 from occkit.engine.train import train
 from occkit.experiment import replace_train
 from occkit.shipped import write_shipped
@@ -99,7 +99,7 @@ def package(entry: str, run: Path, demo: Path, world: dict, device: str, trained
             if tensor.is_floating_point():
                 tensor.copy_(tensor.half().float())
     dataset = evaluation_dataset(experiment, demo, "val")
-    scores = evaluate_model(model, dataset, batch_size=1, workers=0, ray_origins=dataset_ray_origins(dataset))
+    scores = score_model(model, dataset)
     steps = int(checkpoint.stem.removeprefix("step-"))
     points = [point for point in curve(run) if point["step"] <= steps]  # up to the checkpoint shipped
     done, gain = converged(points)

@@ -15,8 +15,8 @@ from pathlib import Path
 
 import pytest
 
-from occkit.data import index as index_module
 from occkit.data.dataset import DatasetConfig, OccupancyDataset
+from occkit.data.index import key as index_key
 from occkit.data.index import read_index_header, tables_key
 from occkit.sim.generate import SimConfig, simulate_dataset
 
@@ -47,10 +47,10 @@ def test_the_index_key_changes_with_each_input(data, monkeypatch):
     assert tables_key(data, VERSION, 0) == key  # a pure function of its inputs
     assert tables_key(data, VERSION, 1) != key  # max_sweeps
     with monkeypatch.context() as patch:
-        patch.setattr(index_module, "INDEX_FORMAT", "occkit-index/999")
+        patch.setattr(index_key, "INDEX_FORMAT", "occkit-index/999")
         assert tables_key(data, VERSION, 0) != key  # the index format
     with monkeypatch.context() as patch:
-        patch.setattr(index_module, "__version__", "999.0")
+        patch.setattr(index_key, "__version__", "999.0")
         assert tables_key(data, VERSION, 0) != key  # occkit's version
     for table in ("scene", "sample_data", "ego_pose"):  # a table's content, size and modification time kept
         path = data / VERSION / f"{table}.json"

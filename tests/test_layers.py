@@ -20,7 +20,7 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     # plain values, shapes and the geometry every other layer computes with
     ("occkit.errors", "occkit.config", "occkit.classes", "occkit.types", "occkit.geometry", "occkit.label_space",
      "occkit.label_files", "occkit.arguments", "occkit.nuscenes", "occkit.figure", "occkit.weight_files",
-     "occkit.archives", "occkit.outputs", "occkit.shipped"),
+     "occkit.archives", "occkit.outputs", "occkit.shipped", "occkit.machine"),
     # reading and writing datasets; the synthetic world writes what data reads, importing nothing of it; labels
     # built from a dataset's sensor data
     ("occkit.data", "occkit.sim", "occkit.labeling"),

@@ -33,6 +33,7 @@ from occkit.models.temporal import StreamMemory
 from occkit.zoo import experiment_from_dict
 
 __all__ = [
+    "score_model",
     "evaluate_model",
     "load_trained",
     "evaluation_dataset",
@@ -83,6 +84,33 @@ def dataset_ray_origins(dataset: OccupancyDataset) -> dict[str, np.ndarray]:
     return ray_origins([PoseRecord(r.token, r.scene, r.lidar2ego, r.ego2global) for r in dataset.records])
 
 
+def score_model(
+    model: nn.Module,
+    dataset: OccupancyDataset,
+    *,
+    rayiou: bool = True,
+    ray_origins: dict[str, np.ndarray] | None = None,
+    mask: str | None = "default",
+    batch_size: int = 1,
+    workers: int = 0,
+    context: distributed.Context | None = None,
+    predictions: Path | None = None,
+    progress: Callable[[int], None] | None = None,
+) -> dict[str, Any]:
+    """Score ``model`` on ``dataset``: every command, benchmark and the training loop's validation score through here.
+
+    RayIoU (and for a flow model mAVE and OccScore) is computed when ``rayiou`` is set and the dataset's label space
+    defines it, on ``ray_origins`` or, by default, the origins of the dataset's own key-frame poses; the other
+    arguments and the result are :func:`evaluate_model`'s.
+    """
+    if not rayiou or not dataset.space.rayiou:
+        ray_origins = None
+    elif ray_origins is None:
+        ray_origins = dataset_ray_origins(dataset)
+    return evaluate_model(model, dataset, batch_size, workers, context, predictions=predictions,
+                          ray_origins=ray_origins, progress=progress, mask=mask)  # fmt: skip
+
+
 @torch.no_grad()
 def evaluate_model(
     model: nn.Module,
@@ -96,7 +124,7 @@ def evaluate_model(
     mask: str | None = "default",
 ) -> dict[str, Any]:
     """Score a model on a labelled dataset split with the protocol of the dataset's label space (Occ3D: the camera
-    mask, the official setting; SurroundOcc: every voxel).
+    mask, the official setting; SurroundOcc: every voxel). Callers use :func:`score_model`, which chooses the rays.
 
     Args:
         model: a zoo model; put in eval mode here.

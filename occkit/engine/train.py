@@ -43,7 +43,7 @@ from occkit.engine.checkpoint import (
     save_checkpoint,
     set_rng_state,
 )
-from occkit.engine.evaluate import evaluate_model
+from occkit.engine.evaluate import score_model
 from occkit.engine.run_log import RunLog, plot_losses
 from occkit.engine.schedule import Schedule
 from occkit.experiment import Experiment, TrainConfig, check_label_space, experiment_yaml
@@ -281,8 +281,9 @@ class _Trainer:
     def validate(self) -> dict:
         weights = self.ema.module if self.ema is not None else self.model
         val_data = replace(self.experiment.data, split=self.experiment.train.val_split, augment=False, history=0)
-        return evaluate_model(weights, OccupancyDataset(val_data), self.experiment.train.batch_size,
-                              self.experiment.train.workers, self.context)  # fmt: skip
+        train = self.experiment.train
+        return score_model(weights, OccupancyDataset(val_data), rayiou=False, batch_size=train.batch_size,
+                           workers=train.workers, context=self.context)  # fmt: skip
 
 
 def _stream_memory(model: torch.nn.Module, experiment: Experiment) -> StreamMemory | None:

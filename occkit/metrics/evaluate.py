@@ -41,6 +41,7 @@ __all__ = [
     "read_prediction_flow",
     "read_ray_origins",
     "evaluate_predictions",
+    "evaluate_prediction_folder",
     "markdown_table",
     "write_report",
     "plot_per_class_iou",
@@ -433,6 +434,69 @@ def evaluate_predictions(
                                        for name, c in zip(FLOW_CLASSES, ids, strict=True)}  # fmt: skip
             result["ave_rays"] = {name: int(ave_count[c]) for name, c in zip(FLOW_CLASSES, ids, strict=True)}
     return result
+
+
+def evaluate_prediction_folder(
+    gt_root: str | Path,
+    pred_dir: str | Path,
+    space: LabelSpace | str = OCC3D_SPACE,
+    *,
+    mask: str | None = "default",
+    rayiou: bool = False,
+    ray_origins: str | Path | Mapping[str, np.ndarray] | None = None,
+    nuscenes: str | Path | None = None,
+    version: str = "v1.0-trainval",
+    allow_missing: bool = False,
+    workers: int = 4,
+    progress: Callable[[int, int], None] | None = None,
+    note: Callable[[str], None] | None = None,
+) -> dict:
+    """:func:`evaluate_predictions` of a ground-truth tree, its frames and ray origins found from the dataset's
+    nuScenes tables when they are given (``occkit eval-preds``).
+
+    Args:
+        nuscenes, version: the dataset's tables: they pair SurroundOcc's files (named after each LiDAR file) with
+            sample tokens, give RayIoU's origins (the key-frame poses) when ``ray_origins`` is None, and choose the
+            frames (an Occ3D tree may cover only some of them). Without them an Occ3D tree's every
+            ``<scene>/<token>`` is scored.
+        rayiou: also RayIoU (and mAVE / OccScore when the predictions carry flow); Occ3D only; needs
+            ``ray_origins`` or ``nuscenes``.
+        progress: called with (frames done, frames in all) after each frame.
+
+    The other arguments are :func:`evaluate_predictions`'.
+    """
+    from occkit.data.index import build_index
+    from occkit.metrics.origins import PoseRecord
+    from occkit.metrics.origins import ray_origins as origins_of
+
+    space = label_space(space) if isinstance(space, str) else space
+    gt_root = Path(gt_root)
+    if rayiou and not space.rayiou:
+        raise ValueError(f"RayIoU is not defined for {space.name} labels (only for Occ3D's)")
+    if mask != "default":
+        space.check_mask(_MASKS.get(mask, mask))
+    records = None if nuscenes is None else build_index(nuscenes, version, max_sweeps=0)
+    if records is None and space.name != "occ3d":
+        raise ValueError(f"{space.name} labels: their files are named after each frame's LiDAR file; give the "
+                         "dataset's nuScenes tables (root and version) to pair them with sample tokens")  # fmt: skip
+    if rayiou and ray_origins is None:
+        if records is None:
+            raise ValueError("RayIoU needs ray origins: a token -> origins file, or the dataset's nuScenes tables")
+        ray_origins = origins_of([PoseRecord(r.token, r.scene, r.lidar2ego, r.ego2global) for r in records])
+    frames = None if records is None else {r.token: (r.scene, r.lidar_path) for r in records}
+    if frames is not None and space.name == "occ3d":  # an Occ3D tree may cover a subset of the tables' frames
+        frames = {token: frame for token, frame in frames.items() if (gt_root / frame[0] / token).is_dir()}
+    total, done = len(find_gt_labels(gt_root, space, frames)), 0
+
+    def step(count: int) -> None:
+        nonlocal done
+        done += count
+        if progress is not None:
+            progress(done, total)
+
+    return evaluate_predictions(gt_root, pred_dir, mask=mask, ray_origins=ray_origins, compute_rayiou=rayiou,
+                                allow_missing=allow_missing, workers=workers, progress=step, space=space,
+                                frames=frames, note=note)  # fmt: skip
 
 
 def _finite_or_none(value: float) -> float | None:

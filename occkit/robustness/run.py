@@ -23,7 +23,7 @@ from typing import Any
 
 from occkit.data.corruptions import CORRUPTIONS
 from occkit.data.dataset import OccupancyDataset
-from occkit.engine.evaluate import dataset_ray_origins, evaluate_model, evaluation_dataset
+from occkit.engine.evaluate import dataset_ray_origins, evaluation_dataset, score_model
 from occkit.errors import InputError
 from occkit.model_source import ModelSource
 from occkit.outputs import write_atomic
@@ -147,7 +147,8 @@ def run_robustness(
                 progress(done, total, case.label)
 
         begin = time.perf_counter()
-        scores = evaluate_model(model, dataset, 1, workers, ray_origins=origins, progress=step)
+        scores = score_model(model, dataset, rayiou=origins is not None, ray_origins=origins, workers=workers,
+                             progress=step)
         result = {key: scores[key] for key in (*METRICS, "per_class_iou", "frames") if key in scores}
         result["seconds"] = time.perf_counter() - begin
         write_case(case_path(cases_folder, case), fingerprint, result)

@@ -32,6 +32,7 @@ from __future__ import annotations
 import dataclasses
 import shutil
 import sys
+import time
 import uuid
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -559,3 +560,29 @@ def new_recording() -> rr.RecordingStream:
     """A recording of application ``occkit`` with a recording id of its own (rerun's default id is the process's,
     shared by every recording it makes)."""
     return rr.RecordingStream("occkit", recording_id=uuid.uuid4())
+
+
+def view_scene(config: ViewConfig, save: Path | None = None, server: ViewerServer | None = None,
+               log: Callable[[str], None] = print) -> None:  # fmt: skip
+    """Record ``config``'s scene and show it: in a spawned viewer, into the ``.rrd`` file ``save``, or through the
+    running ``server`` (a web viewer, until it stops: an ``OSError`` with its last words, or Ctrl-C)."""
+    scene = open_scene(config)
+    recording = new_recording()
+    start_sink(recording, scene.blueprint(), save=save, server=server)
+    start = time.perf_counter()
+    frames = record_scene(scene, recording, progress=log)
+    recording.flush()
+    seconds = time.perf_counter() - start
+    if save is not None:
+        recording.disconnect()  # closes the file
+        log(f"wrote {len(frames)} frames of {scene.name} to {save} ({save.stat().st_size / 1e6:.1f} MB, "
+            f"{seconds:.1f} s); open it with: rerun {save}")
+    elif server is None:
+        log(f"sent {len(frames)} frames of {scene.name} to the viewer ({seconds:.1f} s)")
+    else:
+        log(f"serving {len(frames)} frames of {scene.name} on {server.bind}: open {server.web_url} in a browser "
+            "(Ctrl-C stops the server)")
+        while server.process.poll() is None:
+            time.sleep(1)
+        raise OSError(f"the rerun server stopped: {server.last_words()}")
+
