@@ -19,12 +19,12 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal, TypeVar
 
+import numpy as np
 import yaml
 
 from occkit.config import ConfigError, check_magnitudes, check_ranges, dump_yaml, from_dict, override_dict, to_dict
 from occkit.data.dataset import DatasetConfig
 from occkit.data.transforms import ImageAugConfig
-from occkit.geometry.grid import VoxelGrid
 from occkit.label_space import LabelSpace, label_space
 
 __all__ = ["TrainConfig", "Experiment", "PaperRow", "reproduces", "check_label_space", "experiment_from_dict",
@@ -239,10 +239,9 @@ def check_label_space(model: Any, name: str, where: str = "experiment") -> Label
     if head is not None and head.use_mask and "camera" not in space.masks:
         raise ConfigError(f"{where}: model.occupancy.use_mask needs camera visibility masks, which "
                           f"{space.name} labels do not have")  # fmt: skip
-    if hasattr(model, "occ_range") and hasattr(model, "occ_voxel_size"):
-        grid = VoxelGrid(model.occ_range, model.occ_voxel_size)
-        if grid != space.grid:
-            raise ConfigError(f"{where}: the model predicts on {grid!r} but {space.name} labels are on {space.grid!r}")
+    grid = model.output_grid  # every architecture's config says where it predicts
+    if grid.shape != space.grid.shape or not np.allclose(grid.point_cloud_range, space.grid.point_cloud_range):
+        raise ConfigError(f"{where}: the model predicts on {grid!r} but {space.name} labels are on {space.grid!r}")
     extension = getattr(model, "range_extension", None)
     if extension is not None and extension.label_frame != space.frame:
         raise ConfigError(f"{where}: model.range_extension.label_frame is {extension.label_frame} but "

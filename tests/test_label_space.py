@@ -149,3 +149,28 @@ def test_the_zoo_and_the_demo_use_the_spaces_grids():
     assert zoo.experiment("daocc_surroundocc_tiny").data.label_space == "surroundocc"
     _, occ3d = zoo.model_config("daocc_tiny")
     assert occ3d.occ_range == OCC3D_SPACE.grid.point_cloud_range and occ3d.occupancy.free_index == 17
+
+
+@pytest.mark.parametrize("entry", ["flashocc_tiny", "da_occ_tiny", "daocc_tiny"])
+def test_a_model_whose_grid_differs_from_its_label_space_is_refused(entry):
+    """Every architecture says where it predicts (``output_grid``), and an experiment whose model predicts on another
+    grid than its labels' is refused in one message naming both grids: a FlashOcc BEV of +-51.2 m, a DA-Occ height
+    grid cut into 8 layers, a DAOcc of 0.5 m voxels."""
+    import dataclasses
+
+    from occkit import zoo
+    from occkit.config import ConfigError
+    from occkit.experiment import check_label_space
+
+    _, model = zoo.model_config(entry)
+    assert model.output_grid == OCC3D_SPACE.grid
+    check_label_space(model, "occ3d")
+    if entry == "flashocc_tiny":
+        wider = dataclasses.replace(model.lss, point_cloud_range=(-51.2, -51.2, -1.0, 51.2, 51.2, 5.4))
+        other = dataclasses.replace(model, lss=wider)
+    elif entry == "da_occ_tiny":
+        other = dataclasses.replace(model, occupancy=dataclasses.replace(model.occupancy, height=8))
+    else:
+        other = dataclasses.replace(model, occ_voxel_size=(0.5, 0.5, 0.4))
+    with pytest.raises(ConfigError, match=r"the model predicts on VoxelGrid.* but occ3d labels are on"):
+        check_label_space(other, "occ3d")

@@ -183,6 +183,12 @@ class DirectionAwareOccConfig:
         return targets + (("LiDAR heights",) if self.height_net is not None and self.loss_weights.height else ())
 
     @property
+    def output_grid(self) -> VoxelGrid:
+        """The grid the model predicts on: :attr:`occ_range` cut into the BEV's cells and the occupancy head's
+        ``height`` layers (checked against the label space's grid by ``experiment.check_label_space``)."""
+        return VoxelGrid.from_shape(self.occ_range, (*self.bev_size, self.occupancy.height))
+
+    @property
     def depth_bins(self) -> int:
         """Bins of :attr:`depth_range` (as many as the frustum has)."""
         return int(depth_bins(self.depth_range).numel())

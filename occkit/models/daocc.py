@@ -86,6 +86,12 @@ class DAOccConfig:
         """What supervises the model in training beside the occupancy labels (never an input at inference)."""
         return ("3D boxes",) if self.detection is not None else ()
 
+    @property
+    def output_grid(self) -> VoxelGrid:
+        """The grid the model predicts on (checked against the label space's grid by
+        ``experiment.check_label_space``)."""
+        return VoxelGrid(self.occ_range, self.occ_voxel_size)
+
     def __post_init__(self) -> None:
         if self.image is None and self.lidar is None:
             raise ValueError("DAOcc needs a camera branch (image), a LiDAR branch (lidar), or both")

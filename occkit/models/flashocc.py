@@ -22,6 +22,7 @@ from torch import Tensor
 
 from occkit.data.dataset import DatasetConfig
 from occkit.experiment import CPU_TRAIN, Experiment, TrainConfig, cpu_data, reproduces
+from occkit.geometry.grid import VoxelGrid
 from occkit.label_space import OCC3D_SPACE
 from occkit.losses import depth_bce
 from occkit.models.base import Architecture, OccupancyModel, camera_images
@@ -78,6 +79,14 @@ class FlashOccConfig:
     def training_targets(self) -> tuple[str, ...]:
         """What supervises the model in training beside the occupancy labels (never an input at inference)."""
         return ("LiDAR depth",) if self.depth_weight else ()
+
+    @property
+    def output_grid(self) -> VoxelGrid:
+        """The grid the model predicts on: the LSS BEV's extent and cells, its height range cut into the occupancy
+        head's ``height`` layers (checked against the label space's grid by ``experiment.check_label_space``)."""
+        x_min, y_min, z_min, x_max, y_max, z_max = self.lss.point_cloud_range
+        return VoxelGrid.from_shape((x_min, y_min, z_min, x_max, y_max, z_max),
+                                    (*self.lss.grid_size[:2], self.occupancy.height))  # fmt: skip
 
     @property
     def fused_channels(self) -> int:
