@@ -22,6 +22,7 @@ import torch
 from torch import Tensor
 
 from occkit.geometry.camera import project_points
+from occkit.geometry.grid import OCC3D_GRID
 from occkit.geometry.se3 import invert_transform
 
 __all__ = ["depth_map", "height_map"]
@@ -117,7 +118,7 @@ def height_map(
     img_aug: Tensor | None,
     image_size: Sequence[int],
     downsample: int,
-    z_range: tuple[float, float] = (-1.0, 5.4),
+    z_range: tuple[float, float] = (OCC3D_GRID.point_cloud_range[2], OCC3D_GRID.point_cloud_range[5]),
     depth_range: tuple[float, float] | None = None,
 ) -> Tensor:
     """Ego-frame height of the surface seen per feature cell of every augmented image (DHD's height target).

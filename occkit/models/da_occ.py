@@ -124,11 +124,12 @@ class DirectionAwareOccConfig:
     """Stride of the image features."""
     depth_range: tuple[float, float, float] = (1.0, 45.0, 1.0)
     """Depth bins (min, max, step), metres."""
-    height_range: tuple[float, float, float] = (-1.0, 5.4, 0.4)
+    height_range: tuple[float, float, float] = (OCC3D_GRID.point_cloud_range[2], OCC3D_GRID.point_cloud_range[5],
+                                                OCC3D_GRID.voxel_size[2])  # fmt: skip
     """Height bins (min, max, step), metres in the ego frame: one per voxel layer of the height grid."""
     occ_range: tuple[float, float, float, float, float, float] = OCC3D_GRID.point_cloud_range
     """Occupancy grid extent, ego frame (Occ3D's grid)."""
-    bev_size: tuple[int, int] = (200, 200)
+    bev_size: tuple[int, int] = OCC3D_GRID.shape[:2]
     """BEV cells (X, Y) of the depth-score projection and the output."""
     height_grid_size: tuple[int, int, int] = (32, 32, 16)
     """Voxels (X, Y, Z) of the height-score projection (the paper's Z x X x Y = 16 x 32 x 32)."""

@@ -14,6 +14,7 @@ import torch
 from torch import Tensor, nn
 
 from occkit.classes import OCC3D
+from occkit.geometry.grid import OCC3D_GRID
 from occkit.losses import (
     CountedVoxels,
     class_weights_from_frequencies,
@@ -41,7 +42,7 @@ class OccupancyHeadConfig:
     """Channels of the BEV."""
     hidden_channels: int = 128
     """Channels after the conv3x3; the MLP's hidden layer has twice as many."""
-    height: int = 16
+    height: int = OCC3D_GRID.shape[2]
     """Voxels per column (Z)."""
     num_classes: int = OCC3D.num_classes
     """Classes, free space included (Occ3D: 18, free = 17; SurroundOcc: 17, empty = 0)."""

@@ -33,7 +33,7 @@ import torch
 from torch import Tensor, nn
 
 from occkit.geometry.camera import invert_image_aug
-from occkit.geometry.grid import VoxelGrid
+from occkit.geometry.grid import OCC3D_GRID, VoxelGrid
 from occkit.models.base import FIXED_CALIBRATION_RETIRED
 from occkit.models.indexing import take
 
@@ -64,9 +64,9 @@ class LSSConfig:
     """Image pixels per feature cell; the feature map is ``(H // stride, W // stride)``."""
     depth_range: tuple[float, float, float] = (1.0, 45.0, 1.0)
     """Depth bins ``(start, stop, step)`` in metres, as ``arange`` (stop excluded): M0 44 bins, M1 step 0.5 -> 88."""
-    point_cloud_range: tuple[float, float, float, float, float, float] = (-40.0, -40.0, -1.0, 40.0, 40.0, 5.4)
+    point_cloud_range: tuple[float, float, float, float, float, float] = OCC3D_GRID.point_cloud_range
     """Extent of the target grid in the (augmented) ego frame ``(x_min, y_min, z_min, x_max, y_max, z_max)``, m."""
-    grid_size: tuple[int, int, int] = (200, 200, 1)
+    grid_size: tuple[int, int, int] = (*OCC3D_GRID.shape[:2], 1)
     """Voxels along x, y, z; the BEV comes out ``X x Y`` with ``Z * context_channels`` channels."""
     in_channels: int = 256
     """Channels of the image features."""
