@@ -33,7 +33,6 @@ import json
 import math
 import multiprocessing
 import statistics
-import subprocess
 import sys
 import time
 import traceback
@@ -48,6 +47,7 @@ from occkit.data.collate import collate
 from occkit.data.dataset import OccupancyDataset
 from occkit.data.loader import sample_loader
 from occkit.engine.reference_frame import simulate_reference_world
+from occkit.machine import gpu_driver
 from occkit.shipped import shipped_entries
 
 MODELS = ("flashocc_m0", "flashocc_m1", "da_occ", "da_occ_16f", "daocc", "daocc_no_detection")
@@ -175,11 +175,7 @@ def _versions(device: torch.device) -> dict:
     except ImportError:
         versions["spconv"] = None
     if device.type == "cuda":
-        try:
-            versions["driver"] = subprocess.run(["nvidia-smi", "--query-gpu=driver_version", "--format=csv,noheader"],
-                                                capture_output=True, text=True, check=True).stdout.strip()  # fmt: skip
-        except (OSError, subprocess.CalledProcessError):
-            versions["driver"] = None
+        versions["driver"] = gpu_driver()
     return versions
 
 

@@ -9,11 +9,12 @@ from __future__ import annotations
 import contextlib
 import os
 import platform
+import subprocess
 from pathlib import Path
 
 import torch
 
-__all__ = ["cpu_model", "host", "compute_devices", "machine_info"]
+__all__ = ["cpu_model", "host", "compute_devices", "machine_info", "gpu_driver"]
 
 
 def cpu_model() -> str:
@@ -24,6 +25,16 @@ def cpu_model() -> str:
             if line.startswith("model name"):
                 return line.split(":", 1)[1].strip()
     return platform.processor() or platform.machine()
+
+
+def gpu_driver() -> str | None:
+    """The NVIDIA driver's version, as ``nvidia-smi`` reports it; None where there is none."""
+    try:
+        found = subprocess.run(["nvidia-smi", "--query-gpu=driver_version", "--format=csv,noheader"],
+                               capture_output=True, text=True, check=True, timeout=30)  # fmt: skip
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return found.stdout.strip().splitlines()[0] if found.stdout.strip() else None
 
 
 def host() -> dict:
