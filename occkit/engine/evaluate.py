@@ -27,7 +27,7 @@ from occkit.engine.checkpoint import check_compatible, load_checkpoint
 from occkit.experiment import Experiment
 from occkit.metrics.confusion import OccupancyMetric
 from occkit.metrics.evaluate import write_prediction
-from occkit.metrics.origins import PoseRecord, ray_origins
+from occkit.metrics.origins import records_ray_origins
 from occkit.metrics.rayiou import RAYIOU_THRESHOLDS, rayiou, rayiou_from_counts
 from occkit.models.temporal import StreamMemory
 from occkit.zoo import experiment_from_dict
@@ -81,7 +81,7 @@ def _predict(model: nn.Module, batch, memory: StreamMemory | None):
 
 def dataset_ray_origins(dataset: OccupancyDataset) -> dict[str, np.ndarray]:
     """RayIoU origins (ego positions along each scene) of every key frame of the dataset."""
-    return ray_origins([PoseRecord(r.token, r.scene, r.lidar2ego, r.ego2global) for r in dataset.records])
+    return records_ray_origins(dataset.records)
 
 
 def score_model(

@@ -466,8 +466,7 @@ def evaluate_prediction_folder(
     The other arguments are :func:`evaluate_predictions`'.
     """
     from occkit.data.index import build_index
-    from occkit.metrics.origins import PoseRecord
-    from occkit.metrics.origins import ray_origins as origins_of
+    from occkit.metrics.origins import records_ray_origins
 
     space = label_space(space) if isinstance(space, str) else space
     gt_root = Path(gt_root)
@@ -482,7 +481,7 @@ def evaluate_prediction_folder(
     if rayiou and ray_origins is None:
         if records is None:
             raise ValueError("RayIoU needs ray origins: a token -> origins file, or the dataset's nuScenes tables")
-        ray_origins = origins_of([PoseRecord(r.token, r.scene, r.lidar2ego, r.ego2global) for r in records])
+        ray_origins = records_ray_origins(records)
     frames = None if records is None else {r.token: (r.scene, r.lidar_path) for r in records}
     if frames is not None and space.name == "occ3d":  # an Occ3D tree may cover a subset of the tables' frames
         frames = {token: frame for token, frame in frames.items() if (gt_root / frame[0] / token).is_dir()}

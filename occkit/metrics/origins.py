@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["PoseRecord", "ray_origins", "MAX_ORIGINS", "ORIGIN_RANGE"]
+__all__ = ["PoseRecord", "ray_origins", "records_ray_origins", "MAX_ORIGINS", "ORIGIN_RANGE"]
 
 MAX_ORIGINS = 8
 ORIGIN_RANGE = 39.0
@@ -58,3 +58,10 @@ def ray_origins(frames: Sequence[PoseRecord]) -> dict[str, np.ndarray]:
     for frame in frames:
         scenes.setdefault(frame.scene, []).append(frame)
     return {frame.token: _origins_of(frame, scenes[frame.scene]) for frame in frames}
+
+
+def records_ray_origins(records) -> dict[str, np.ndarray]:
+    """:func:`ray_origins` of index records (anything with ``token``, ``scene``, ``lidar2ego`` and ``ego2global``: a
+    dataset's key frames, or those of a dataset's nuScenes tables)."""
+    return ray_origins([PoseRecord(r.token, r.scene, r.lidar2ego, r.ego2global) for r in records])
+
