@@ -125,11 +125,11 @@ def tiny_model(name: str) -> nn.Module:
 
 
 #: Per tiny model: a batch it accepts (DA-Occ's DACs fix the feature height, 128 / 16; DAOcc's five cameras of
-#: 90 degrees overlap, so the camera average sums several samples into one voxel) and operators its graph must hold.
+#: 90 degrees overlap, so a voxel gathers the samples of several cameras) and operators its graph must hold.
 CASES = {
     "flashocc_tiny": ({"num_cameras": 2}, {"Conv", "Gather", "ScatterElements", "Softmax"}),
     "da_occ_tiny": ({"num_cameras": 2, "image_size": (128, 352)}, {"Conv", "GatherElements", "MatMul", "Erf"}),
-    "daocc_tiny": ({"num_cameras": 5, "num_points": 2000}, {"Conv", "GridSample", "ScatterND", "MatMul"}),
+    "daocc_tiny": ({"num_cameras": 5, "num_points": 2000}, {"Conv", "Gather", "ScatterND", "MatMul"}),
 }
 
 
@@ -204,10 +204,7 @@ def test_daocc_graph_takes_any_lidar_sweep_of_the_rig(exported):
     result = exported("daocc_tiny")
     net = result.net
     sampling = net.plan().sampling
-    assert bool((sampling.weight == 0.5).any())  # overlapping cameras
-    for targets in sampling.target:  # one camera samples each voxel once: its scatter cannot race either
-        targets = targets[targets != sampling.num_voxels]
-        assert targets.unique().numel() == targets.numel()
+    assert bool((sampling.weight == 0.5).any())  # overlapping cameras, each voxel gathering from both (no scatter)
     assert net.input_names[:2] == ["images", "voxel_features"] and net.input_names[-1] == "coords_spconv_down2"
     options = ort.SessionOptions()
     options.intra_op_num_threads = 4  # scatters with repeated rows would race here

@@ -121,9 +121,7 @@ def constant_features(values: list[float]) -> torch.Tensor:
 
 def overlap_and_single(view, plan_geometry):
     plan = view.plan(**plan_geometry, image_size=IMAGE_SIZE)
-    counts = torch.zeros(view.centers.shape[0])
-    counts.index_add_(0, plan.target.flatten().clamp_max(counts.numel() - 1),
-                      (plan.target.flatten() < counts.numel()).float())
+    counts = (plan.weight > 0).sum(dim=1).float()  # cameras seeing each voxel (one sample here)
     return plan, counts
 
 

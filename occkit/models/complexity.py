@@ -100,12 +100,20 @@ def count_macs(model: nn.Module, run: Callable[[], object]) -> MacCount:
         return record
 
     handles = [m.register_forward_hook(hook(name)) for name, m in sparse.items()]
+    # The pairs are read from spconv's index tensors, so sparse encoders count through spconv (the same pairs as any
+    # backend's, hence the same MACs).
+    encoders = [m for m in model.modules() if hasattr(m, "backend") and hasattr(m, "run_rows")]
+    backends = [encoder.backend for encoder in encoders]
     try:
+        for encoder in encoders:
+            encoder.backend = "spconv"
         with FlopCounterMode(display=False) as counter:
             run()
     finally:
         for handle in handles:
             handle.remove()
+        for encoder, backend in zip(encoders, backends, strict=True):
+            encoder.backend = backend
     counts = counter.get_flop_counts()
     result = MacCount()
     children = [name for name, _ in model.named_children()]

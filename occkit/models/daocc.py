@@ -137,7 +137,7 @@ class DAOcc(OccupancyModel):
     """``forward(batch) -> ModelOutput``; ``loss(output, batch)``; ``predict(batch) -> OccPrediction``.
 
     Plan: :class:`FusionPlan`. Inputs: ``images (B, N, 3, H, W)`` with a camera branch; with a LiDAR branch either
-    ``points (B, P, C)`` and ``num_points (B,)`` (spconv runs the sparse encoder) or a ready ``lidar_bev`` (the
+    ``points (B, P, C)`` and ``num_points (B,)`` (the sparse encoder runs on them) or a ready ``lidar_bev`` (the
     deployed network runs it from rulebooks, :class:`LidarRulebookInputs`).
     """
 

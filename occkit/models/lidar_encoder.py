@@ -11,6 +11,9 @@ The design is BEVFusion's ``SparseEncoder`` with ``block_type="basicblock"`` as 
   stride-2 sparse convolution, then ``conv_out`` (kernel (1, 1, 3), stride (1, 1, 2)) that squeezes z to 2;
 * the dense ``(B, 128, 180, 180, 2)`` volume is flattened to a ``(B, 256, 180, 180)`` BEV map, channel ``c * Z + z``.
 
+The layers are spconv modules (they hold the weights, and spconv runs them on CUDA); on the CPU the encoder runs the
+same layers through :mod:`occkit.models.sparse_gemm` (:attr:`SparseEncoder.backend`).
+
 Every tensor keeps occkit's ``(x, y, z)`` axis order (see :mod:`occkit.models.sparse`); BEV maps are ``(B, C, X, Y)``
 with dim 2 along x (forward) and dim 3 along y. Parameter names follow BEVFusion's (``conv_input.0``,
 ``encoder_layers.encoder_layer1.0.conv1``, ``bn1``, ..., ``conv_out.0``); the weights are spconv 2.x's
@@ -20,7 +23,7 @@ with dim 2 along x (forward) and dim 3 along y. Parameter names follow BEVFusion
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import torch
@@ -36,8 +39,11 @@ from occkit.models.sparse import (
     sparse_tensor_from_voxels,
     spconv,
 )
+from occkit.models.sparse_gemm import build_neighbour_tables, gather_gemm_conv
+from occkit.models.sparse_rules import ConvSpec, encoder_conv_specs
 
 __all__ = [
+    "SPARSE_BACKENDS",
     "LidarEncoderConfig",
     "LidarEncoder",
     "SparseEncoder",
@@ -45,6 +51,10 @@ __all__ = [
     "remove_close_points",
     "sparse_encoder_output_shape",
 ]
+
+#: How the sparse encoder's convolutions run: ``spconv`` (the reference, and the CUDA path), ``gather_gemm``
+#: (:mod:`occkit.models.sparse_gemm`, the CPU path) or ``auto`` (spconv on CUDA tensors, gather_gemm otherwise).
+SPARSE_BACKENDS = ("auto", "spconv", "gather_gemm")
 
 #: BatchNorm settings of SECOND / BEVFusion sparse encoders (mmcv ``BN1d`` with eps 1e-3, momentum 0.01).
 BN_EPS = 1e-3
@@ -290,6 +300,9 @@ class SparseEncoder(nn.Module):
             indice_key="spconv_down2",
         )
         self.conv_out = _conv_bn_relu(conv_out, output_channels)
+        self.backend = "auto"
+        """How sparse convolutions run (:data:`SPARSE_BACKENDS`); ``auto``: spconv on CUDA, ``gather_gemm`` else."""
+        self._conv_specs: list[ConvSpec] | None = None
 
     @property
     def out_channels(self) -> int:
@@ -329,6 +342,16 @@ class SparseEncoder(nn.Module):
         """
         if features.shape[0] == 0:
             return self.empty_bev(batch_size, features.dtype, features.device)
+        backend = self.backend
+        if backend == "auto":
+            backend = "spconv" if features.is_cuda else "gather_gemm"
+        if backend == "gather_gemm":
+            tables = build_neighbour_tables(self.conv_specs, coords, batch_size)
+            x = self.run_rows(features, lambda conv, rows: gather_gemm_conv(rows, conv.weight,
+                                                                            tables[conv.indice_key]))
+            return self.bev_from_rows(x, tables[self.conv_specs[-1].key].out_coords, batch_size)
+        if backend != "spconv":
+            raise ValueError(f"sparse backend must be one of {', '.join(SPARSE_BACKENDS)}, got {backend!r}")
         x = sparse_tensor_from_voxels(features, coords, self.sparse_shape, batch_size)
         x = self.conv_input(x)
         x = self.encoder_layers(x)
@@ -336,6 +359,51 @@ class SparseEncoder(nn.Module):
         volume = x.dense()  # (B, C, X', Y', Z')
         b, c, nx, ny, nz = volume.shape
         return volume.permute(0, 1, 4, 2, 3).reshape(b, c * nz, nx, ny)
+
+    @property
+    def conv_specs(self) -> list[ConvSpec]:
+        """Geometry of each rulebook key, in forward order (:func:`~occkit.models.sparse_rules.encoder_conv_specs`)."""
+        if self._conv_specs is None:
+            self._conv_specs = encoder_conv_specs(self)
+        return self._conv_specs
+
+    def run_rows(self, features: Tensor, conv: Callable[[nn.Module, Tensor], Tensor]) -> Tensor:
+        """The encoder's layers on ``(N, C)`` feature rows, in the order spconv runs them, each sparse convolution
+        executed by ``conv(module, rows)``; BatchNorm, ReLU and the residual additions as the modules define them.
+
+        Submanifold convolutions keep their rows, so a basic block's identity is its input rows. Returns the rows of
+        ``conv_out``'s output sites.
+        """
+
+        def run(module: nn.Module, x: Tensor) -> Tensor:
+            if isinstance(module, (SubMConv3d, SparseConv3d)):
+                return conv(module, x)
+            if isinstance(module, SparseBasicBlock):
+                out = module.relu(module.bn1(conv(module.conv1, x)))
+                return module.relu(module.bn2(conv(module.conv2, out)) + x)
+            if isinstance(module, SparseSequential):
+                for child in module.children():
+                    x = run(child, x)
+                return x
+            if isinstance(module, (nn.BatchNorm1d, nn.ReLU)):
+                return module(x)
+            raise TypeError(f"no row-wise execution for {type(module).__name__} in the sparse encoder")
+
+        for stage in (self.conv_input, self.encoder_layers, self.conv_out):
+            features = run(stage, features)
+        return features
+
+    def bev_from_rows(self, features: Tensor, coords: Tensor, batch_size: int) -> Tensor:
+        """``(N, C)`` features at the ``(N, 4)`` output sites -> the ``(B, C * Z', X', Y')`` BEV, channel
+        ``c * Z' + z``; as ``forward`` returns it."""
+        size_x, size_y, size_z = self.output_shape
+        channels = features.shape[1]
+        rows = ((coords[:, 0] * size_x + coords[:, 1]) * size_y + coords[:, 2]) * size_z + coords[:, 3]
+        volume = features.new_zeros(batch_size * size_x * size_y * size_z, channels)
+        volume = volume.scatter(0, rows[:, None].expand(-1, channels), features)
+        volume = volume.view(batch_size, size_x, size_y, size_z, channels)
+        # (B, X, Y, Z, C) -> (B, C, Z, X, Y) -> (B, C * Z, X, Y), the encoder's channel order.
+        return volume.permute(0, 4, 3, 1, 2).reshape(batch_size, channels * size_z, size_x, size_y)
 
 
 def remove_close_points(points: Tensor, radius: float) -> Tensor:

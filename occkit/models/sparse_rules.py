@@ -36,14 +36,15 @@ import torch
 from torch import Tensor, nn
 
 from occkit.models.indexing import take
-from occkit.models.lidar_encoder import SparseBasicBlock, SparseEncoder
-from occkit.models.sparse import SparseConv3d, SparseSequential, SubMConv3d
+from occkit.models.sparse import SparseConv3d, SubMConv3d
 
 __all__ = [
     "ConvSpec",
     "Rulebook",
     "encoder_conv_specs",
     "coordinate_keys",
+    "decode_keys",
+    "kernel_offsets",
     "submanifold_rulebook",
     "strided_rulebook",
     "build_rulebooks",
@@ -114,8 +115,9 @@ def _conv_modules(module: nn.Module) -> Iterator[nn.Module]:
             yield from _conv_modules(child)
 
 
-def encoder_conv_specs(encoder: SparseEncoder) -> list[ConvSpec]:
-    """One :class:`ConvSpec` per rulebook key of ``encoder``, in forward order (``subm1, spconv1, ..., spconv_down2``).
+def encoder_conv_specs(encoder: nn.Module) -> list[ConvSpec]:
+    """One :class:`ConvSpec` per rulebook key of ``encoder`` (a :class:`~occkit.models.lidar_encoder.SparseEncoder`),
+    in forward order (``subm1, spconv1, ..., spconv_down2``).
 
     Raises:
         ValueError: if two convolutions share a key but differ in geometry (the rulebook could not serve both),
@@ -149,7 +151,7 @@ def coordinate_keys(coords: Tensor, shape: Sequence[int]) -> Tensor:
     return ((coords[:, 0] * size_x + coords[:, 1]) * size_y + coords[:, 2]) * size_z + coords[:, 3]
 
 
-def _decode_keys(keys: Tensor, shape: Sequence[int]) -> Tensor:
+def decode_keys(keys: Tensor, shape: Sequence[int]) -> Tensor:
     """Inverse of :func:`coordinate_keys`: ``(N,)`` keys -> ``(N, 4)`` ``(batch, x, y, z)``."""
     size_x, size_y, size_z = (int(s) for s in shape)
     z = keys % size_z
@@ -158,7 +160,7 @@ def _decode_keys(keys: Tensor, shape: Sequence[int]) -> Tensor:
     return torch.stack((keys // (size_z * size_y * size_x), x, y, z), dim=1)
 
 
-def _kernel_offsets(kernel_size: Sequence[int], offsets: Sequence[int], device: torch.device) -> Tensor:
+def kernel_offsets(kernel_size: Sequence[int], offsets: Sequence[int], device: torch.device) -> Tensor:
     """``(K', 3)`` int64 ``(ix, iy, iz)`` of the flat kernel offsets."""
     flat = torch.tensor(list(offsets), dtype=torch.int64, device=device)
     _, ky, kz = kernel_size
@@ -193,7 +195,7 @@ def submanifold_rulebook(coords: Tensor, spec: ConvSpec) -> Tensor:
     coords = coords.to(torch.int64)
     device = coords.device
     keys, order = torch.sort(coordinate_keys(coords, spec.in_shape))
-    delta = _kernel_offsets(spec.kernel_size, spec.offsets, device) - torch.tensor(spec.padding, device=device)
+    delta = kernel_offsets(spec.kernel_size, spec.offsets, device) - torch.tensor(spec.padding, device=device)
     neighbours = coords[None, :, 1:] + delta[:, None]  # (K', N, 3): the input each output reads through offset k
     upper = torch.tensor(spec.in_shape, device=device)
     inside = ((neighbours >= 0) & (neighbours < upper)).all(dim=-1)  # (K', N)
@@ -219,7 +221,7 @@ def strided_rulebook(coords: Tensor, spec: ConvSpec) -> tuple[Tensor, Tensor]:
     """
     coords = coords.to(torch.int64)
     device = coords.device
-    kernel = _kernel_offsets(spec.kernel_size, spec.offsets, device)  # (K, 3)
+    kernel = kernel_offsets(spec.kernel_size, spec.offsets, device)  # (K, 3)
     stride = torch.tensor(spec.stride, device=device)
     # Input i reaches output o through offset k when i + p - k = o * s with 0 <= o < out_shape.
     numerator = coords[None, :, 1:] + torch.tensor(spec.padding, device=device) - kernel[:, None]  # (K, N, 3)
@@ -232,7 +234,7 @@ def strided_rulebook(coords: Tensor, spec: ConvSpec) -> tuple[Tensor, Tensor]:
     out_rows = torch.searchsorted(out_keys, keys).clamp(max=max(out_keys.numel() - 1, 0))
     inputs = torch.arange(coords.shape[0], device=device).expand_as(valid)
     pairs = _pad_pairs(valid, inputs, out_rows, out_keys.numel())
-    return pairs, _decode_keys(out_keys, spec.out_shape)
+    return pairs, decode_keys(out_keys, spec.out_shape)
 
 
 def build_rulebooks(specs: Sequence[ConvSpec], coords: Tensor) -> dict[str, Rulebook]:
@@ -305,7 +307,7 @@ class RulebookSparseEncoder(nn.Module):
         batch_size: ``B`` of the BEV map.
     """
 
-    def __init__(self, encoder: SparseEncoder, batch_size: int) -> None:
+    def __init__(self, encoder: nn.Module, batch_size: int) -> None:
         super().__init__()
         self.encoder = encoder
         self.batch_size = batch_size
@@ -326,38 +328,10 @@ class RulebookSparseEncoder(nn.Module):
                              f"got {len(pairs)} and {len(out_coords)}")
         sizes = {spec.key: coords.shape[0] for spec, coords in zip(self.strided_specs, out_coords, strict=True)}
         rules = dict(zip((s.key for s in self.specs), pairs, strict=True))
-        x = self._run(self.encoder.conv_input, features, rules, sizes)
-        x = self._run(self.encoder.encoder_layers, x, rules, sizes)
-        x = self._run(self.encoder.conv_out, x, rules, sizes)
-        return self._dense_bev(x, out_coords[-1])
+        x = self.encoder.run_rows(features, lambda conv, rows: self._conv(conv, rows, rules, sizes))
+        return self.encoder.bev_from_rows(x, out_coords[-1], self.batch_size)
 
     def _conv(self, conv: nn.Module, x: Tensor, rules: Mapping[str, Tensor], sizes: Mapping[str, int]) -> Tensor:
         spec = self.specs[self._spec_index[conv.indice_key]]
         num_out = x.shape[0] if spec.subm else sizes[spec.key]
         return sparse_conv(x, conv.weight, rules[spec.key], spec, num_out)
-
-    def _run(self, module: nn.Module, x: Tensor, rules: Mapping[str, Tensor], sizes: Mapping[str, int]) -> Tensor:
-        """The encoder's layers on ``(N, C)`` feature rows, module by module, as their spconv forward runs them."""
-        if isinstance(module, (SubMConv3d, SparseConv3d)):
-            return self._conv(module, x, rules, sizes)
-        if isinstance(module, SparseBasicBlock):
-            out = module.relu(module.bn1(self._conv(module.conv1, x, rules, sizes)))
-            return module.relu(module.bn2(self._conv(module.conv2, out, rules, sizes)) + x)
-        if isinstance(module, SparseSequential):
-            for child in module.children():
-                x = self._run(child, x, rules, sizes)
-            return x
-        if isinstance(module, (nn.BatchNorm1d, nn.ReLU)):
-            return module(x)
-        raise TypeError(f"no rulebook execution for {type(module).__name__} in the sparse encoder")
-
-    def _dense_bev(self, features: Tensor, coords: Tensor) -> Tensor:
-        """``(N, C)`` features at ``(N, 4)`` sites -> the ``(B, C * Z', X', Y')`` BEV, channel ``c * Z' + z``."""
-        size_x, size_y, size_z = self.encoder.output_shape
-        channels = features.shape[1]
-        rows = coordinate_keys(coords, (size_x, size_y, size_z))
-        volume = features.new_zeros(self.batch_size * size_x * size_y * size_z, channels)
-        volume = volume.scatter(0, rows[:, None].expand(-1, channels), features)
-        volume = volume.view(self.batch_size, size_x, size_y, size_z, channels)
-        # (B, X, Y, Z, C) -> (B, C, Z, X, Y) -> (B, C * Z, X, Y), the encoder's channel order.
-        return volume.permute(0, 4, 3, 1, 2).reshape(self.batch_size, channels * size_z, size_x, size_y)

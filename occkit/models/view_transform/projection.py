@@ -22,8 +22,17 @@ from torch import Tensor, nn
 from occkit.geometry.grid import VoxelGrid
 from occkit.geometry.se3 import invert_transform
 from occkit.models.base import FIXED_CALIBRATION_RETIRED
+from occkit.models.indexing import take
 
-__all__ = ["ProjectionConfig", "SamplingPlan", "projection_matrices", "make_sampling_plan", "ProjectionViewTransform"]
+__all__ = [
+    "ProjectionConfig",
+    "SamplingPlan",
+    "projection_matrices",
+    "make_sampling_plan",
+    "bilinear_taps",
+    "weighted_rows",
+    "ProjectionViewTransform",
+]
 
 
 @dataclass(frozen=True)
@@ -51,20 +60,24 @@ class ProjectionConfig:
 
 @dataclass
 class SamplingPlan:
-    """Where each (sample, camera) samples its image features, flattened over the visible voxels.
+    """Which (sample, camera) views each voxel samples, and where: voxel-major, ``M`` view slots per voxel.
 
-    ``L`` is the most voxels any one (sample, camera) sees; shorter lists are padded and point at a dummy row.
+    ``M`` is the most cameras that see any one voxel (1 in ``first`` mode); a voxel seen by fewer cameras has padded
+    slots of weight 0. Only the geometry is here: the bilinear taps depend on the feature map's size as well and are
+    derived from it at each forward pass (:func:`bilinear_taps`), which costs a few elementwise operations.
     """
 
     grid: Tensor
-    """``(B * N, L, 1, 2)`` image coordinates normalised by the image size (-1 and 1 at its edges), for
-    ``grid_sample`` with the config's ``align_corners``."""
-    target: Tensor
-    """``(B * N, L)`` int64 flat row ``b * P + p`` of the voxel each sample feeds; ``B * P`` for padding."""
+    """``(B * P, M, 2)`` image coordinates normalised by the image size (-1 and 1 at its edges), ``grid_sample``'s
+    convention with the config's ``align_corners``; voxel row ``b * P + p``."""
+    view: Tensor
+    """``(B * P, M)`` int64 flat index ``b * N + n`` of the (sample, camera) of each slot."""
     weight: Tensor
-    """``(B * N, L)`` 1 / number of cameras averaged at the voxel (0 for padding)."""
+    """``(B * P, M)`` 1 / number of cameras averaged at the voxel; 0 for padded slots."""
     num_voxels: int
     """``P = X * Y * Z``."""
+    num_views: int
+    """``B * N``, the feature maps the plan samples."""
 
 
 def projection_matrices(
@@ -102,7 +115,7 @@ def make_sampling_plan(
         mode: ``average`` or ``first``.
 
     Returns:
-        The plan; a voxel seen by no camera gets no entry (its feature stays zero).
+        The plan; a voxel seen by no camera has only padded slots (its feature stays zero).
     """
     batch, cameras = projection.shape[:2]
     height, width = image_size
@@ -117,22 +130,71 @@ def make_sampling_plan(
         visible &= visible.cumsum(dim=1) == 1
     elif mode != "average":
         raise ValueError(f"projection mode must be 'average' or 'first', got {mode!r}")
-    counts = visible.sum(dim=1, keepdim=True).clamp_min(1)  # (B, 1, P)
-    visible = visible.flatten(0, 1)  # (B*N, P)
-    lengths = visible.sum(dim=1)
-    longest = int(lengths.max()) if lengths.numel() else 0
-    # Stable sort puts the visible voxels of each (sample, camera) first, in voxel order.
-    order = torch.argsort((~visible).to(torch.uint8), dim=1, stable=True)[:, :longest]  # (B*N, L)
-    valid = torch.arange(longest, device=visible.device)[None] < lengths[:, None]
-    normalised = uv.flatten(0, 1) / uv.new_tensor([width, height]) * 2 - 1  # (B*N, P, 2)
-    grid = torch.gather(normalised, 1, order[..., None].expand(-1, -1, 2))
-    grid = torch.where(valid[..., None], grid, torch.zeros_like(grid))
+    counts = visible.sum(dim=1)  # (B, P)
+    slots = max(int(counts.max()) if counts.numel() else 0, 1)
+    # Each visible (sample, camera, voxel) gets the slot of its camera's rank among the voxel's cameras, so a voxel's
+    # views are summed in camera order.
+    rank = visible.cumsum(dim=1) - 1  # (B, N, P)
+    b, n, p = visible.nonzero(as_tuple=True)
     num_voxels = centers.shape[0]
-    sample_offset = torch.arange(batch, device=order.device).repeat_interleave(cameras)[:, None] * num_voxels
-    target = torch.where(valid, order + sample_offset, torch.full_like(order, batch * num_voxels))
-    weight = torch.gather((1.0 / counts).expand(-1, cameras, -1).flatten(0, 1), 1, order)
-    weight = torch.where(valid, weight, torch.zeros_like(weight))
-    return SamplingPlan(grid=grid[:, :, None], target=target, weight=weight, num_voxels=num_voxels)
+    row, slot = b * num_voxels + p, rank[b, n, p]
+    grid = uv.new_zeros(batch * num_voxels, slots, 2)
+    grid[row, slot] = uv[b, n, p] / uv.new_tensor([width, height]) * 2 - 1
+    view = torch.zeros(batch * num_voxels, slots, dtype=torch.int64, device=uv.device)
+    view[row, slot] = b * cameras + n
+    weight = uv.new_zeros(batch * num_voxels, slots)
+    weight[row, slot] = 1.0 / counts[b, p].to(uv.dtype)
+    return SamplingPlan(grid=grid, view=view, weight=weight, num_voxels=num_voxels, num_views=batch * cameras)
+
+
+def bilinear_taps(plan: SamplingPlan, size: tuple[int, int], align_corners: bool) -> tuple[Tensor, Tensor]:
+    """The plan's samples as weighted rows of the feature maps: ``grid_sample``'s bilinear taps, zero padding.
+
+    Args:
+        plan: the sampling plan.
+        size: ``(h, w)`` of the feature maps.
+        align_corners: ``grid_sample``'s convention for the plan's normalised coordinates.
+
+    Returns:
+        index: ``(B * P, 4 * M)`` int64 rows of the features flattened to ``(B * N * h * w + 1, C)``, pixel
+        ``(b * N + n, y, x)`` at row ``((b * N + n) * h + y) * w + x``; taps outside the map and padded slots point at
+        the last row, which holds zeros.
+        weight: ``(B * P, 4 * M)`` bilinear weight times the slot's weight; 0 where the index is the zero row.
+    """
+    height, width = size
+    u, v = plan.grid.unbind(-1)
+    if align_corners:
+        x, y = (u + 1) / 2 * (width - 1), (v + 1) / 2 * (height - 1)
+    else:
+        x, y = ((u + 1) * width - 1) / 2, ((v + 1) * height - 1) / 2
+    x0, y0 = x.floor(), y.floor()
+    zero_row = plan.num_views * height * width
+    indices, weights = [], []
+    for dy in (0, 1):
+        for dx in (0, 1):
+            xi, yi = x0 + dx, y0 + dy
+            tap = (1 - (x - xi).abs()) * (1 - (y - yi).abs()) * plan.weight  # (B * P, M)
+            inside = (xi >= 0) & (xi <= width - 1) & (yi >= 0) & (yi <= height - 1) & (plan.weight > 0)
+            pixel = (plan.view * height + yi.clamp(0, height - 1).long()) * width + xi.clamp(0, width - 1).long()
+            indices.append(torch.where(inside, pixel, torch.full_like(pixel, zero_row)))
+            weights.append(torch.where(inside, tap, torch.zeros_like(tap)))
+    return torch.cat(indices, dim=1), torch.cat(weights, dim=1)
+
+
+def weighted_rows(rows: Tensor, index: Tensor, weight: Tensor) -> Tensor:
+    """``out[i] = sum_j weight[i, j] * rows[index[i, j]]``: ``(R, C)`` rows, ``(P, T)`` index and weight -> ``(P, C)``.
+
+    In eager mode one ``embedding_bag``, which sums each row's taps in a fused kernel on the CPU and the GPU. An
+    exported graph (``torch.export``) would turn ``embedding_bag`` into a loop over the rows; there the taps are
+    added one column at a time: ``T`` gathers of ``(P, C)``, still without a scatter.
+    """
+    weight = weight.to(rows.dtype)
+    if torch.compiler.is_exporting():
+        out = rows.new_zeros(index.shape[0], rows.shape[1])
+        for tap in range(index.shape[1]):
+            out = out + weight[:, tap, None] * take(rows, index[:, tap])
+        return out
+    return F.embedding_bag(index, rows, per_sample_weights=weight, mode="sum")
 
 
 class ProjectionViewTransform(nn.Module):
@@ -163,23 +225,18 @@ class ProjectionViewTransform(nn.Module):
     def forward(self, features: Tensor, plan: SamplingPlan) -> Tensor:
         """Sample and average. ``features (B, N, C_in, h, w)`` -> ``(B, Z * C_out, X, Y)``.
 
-        The samples are added camera by camera: within one (sample, camera) every voxel is hit once (padding aside),
-        but a voxel seen by two cameras is hit twice, and one ``index_add`` over all cameras exports to a
-        ScatterND(reduction="add") that onnxruntime spreads over threads without guarding repeated rows. On a CPU
-        the order of the additions, and so the result, is the same as one ``index_add``.
+        Every voxel gathers its bilinear taps from the cameras that see it (:func:`weighted_rows`): no scatter, so
+        no atomic additions on the GPU and no race in an exported graph, and the views are summed in camera order.
         """
         batch = features.shape[0]
         flat = features.flatten(0, 1)  # (B*N, C_in, h, w)
         if self.reduce is not None:
             flat = self.reduce(flat)
-        channels = flat.shape[1]
-        sampled = F.grid_sample(flat, plan.grid.to(flat.dtype), mode="bilinear", padding_mode="zeros",
-                                align_corners=self.cfg.align_corners)  # (B*N, C, L, 1)
-        sampled = sampled[..., 0].transpose(1, 2) * plan.weight[..., None].to(flat.dtype)  # (B*N, L, C)
-        volume = flat.new_zeros(batch * plan.num_voxels + 1, channels)  # last row absorbs padding
-        for camera in range(sampled.shape[0]):
-            volume.index_add_(0, plan.target[camera], sampled[camera])
+        channels, height, width = flat.shape[1:]
+        rows = torch.cat((flat.permute(0, 2, 3, 1).reshape(-1, channels), flat.new_zeros(1, channels)))
+        index, weight = bilinear_taps(plan, (height, width), self.cfg.align_corners)
+        volume = weighted_rows(rows, index, weight)  # (B * P, C)
         x, y, z = self.cfg.grid_size
-        volume = volume[:-1].view(batch, x, y, z, channels)
+        volume = volume.view(batch, x, y, z, channels)
         # (B, X, Y, Z, C) -> (B, Z, C, X, Y) -> (B, Z*C, X, Y): channel z * C + c, as the reference folds height.
         return volume.permute(0, 3, 4, 1, 2).reshape(batch, z * channels, x, y)
