@@ -17,7 +17,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import os
 import statistics
 import time
 from pathlib import Path
@@ -28,6 +27,7 @@ from occkit import zoo
 from occkit.bench import StageTimer, stage_modules
 from occkit.data.collate import collate
 from occkit.data.dataset import OccupancyDataset
+from occkit.machine import machine_info
 from occkit.models.complexity import count_parameters
 from occkit.nuscenes import CAMERAS
 
@@ -106,8 +106,7 @@ def main() -> None:
     sample = batch_of(0)
     result = {
         "model": args.model,
-        "threads": torch.get_num_threads(),
-        "cpus": os.cpu_count(),
+        "machine": machine_info("cpu"),
         "images": list(sample.images.shape),
         "points": 0 if sample.num_points is None else int(sample.num_points.sum()),
         "params": count_parameters(model),
@@ -117,7 +116,7 @@ def main() -> None:
     }
     width = max(map(len, median))
     print(f"{args.model}: {median['step']:.3f} s per step (median of {args.steps}), images {result['images']}, "
-          f"{result['points']} points, {result['threads']} threads")
+          f"{result['points']} points, {result['machine']['threads']} threads")
     for key, seconds in median.items():
         if key != "step":
             print(f"  {key:<{width}} {1000 * seconds:8.1f} ms  {100 * seconds / median['step']:5.1f}%")

@@ -35,6 +35,8 @@ import yaml
 
 __all__ = [
     "ConfigError",
+    "MISSING",
+    "leaf_differences",
     "to_dict",
     "from_dict",
     "load_config",
@@ -352,3 +354,19 @@ def field_docs(cls: type) -> dict[str, str]:
             ):
                 docs[node.target.id] = " ".join(following.value.value.split())
     return docs
+
+
+#: The side of a :func:`leaf_differences` entry where the key is absent.
+MISSING = object()
+
+
+def leaf_differences(first: Any, second: Any, key: str = "") -> list[tuple[str, Any, Any]]:
+    """``(dotted key, first value, second value)`` of every leaf where two nested dicts differ, keys sorted; a side
+    without the key holds :data:`MISSING`."""
+    if isinstance(first, dict) and isinstance(second, dict):
+        found = []
+        for name in sorted(set(first) | set(second)):
+            found += leaf_differences(first.get(name, MISSING), second.get(name, MISSING),
+                                      f"{key}.{name}" if key else name)  # fmt: skip
+        return found
+    return [] if first == second else [(key, first, second)]

@@ -35,7 +35,10 @@ def _sparse_backend() -> dict:
         from occkit.models import sparse
     except ImportError as error:
         return {"available": False, "error": str(error)}
-    return {"available": True, "cpu_backward_patched": sparse.SPCONV_CPU_BACKWARD_PATCHED}
+    # The LiDAR encoder's default (SparseEncoder.backend "auto"): spconv's kernels on CUDA, occkit's gather-GEMM
+    # path (occkit.models.sparse_gemm) on the CPU.
+    return {"available": True, "cpu_backward_patched": sparse.SPCONV_CPU_BACKWARD_PATCHED,
+            "cpu_path": "gather_gemm", "cuda_path": "spconv"}
 
 
 def _determinism() -> dict:
@@ -94,7 +97,8 @@ def format_environment_report(report: dict) -> str:
     else:
         device_line = f"CPU only ({devices['cpu_threads']} threads)"
     if sparse["available"]:
-        sparse_line = "spconv" + (" (CPU backward fix active)" if sparse["cpu_backward_patched"] else "")
+        sparse_line = (f"spconv on CUDA, occkit's {sparse['cpu_path']} on the CPU"
+                       + (" (spconv's CPU backward fix active)" if sparse["cpu_backward_patched"] else ""))
     else:
         sparse_line = f"unavailable: {sparse['error']}"
     lines = [

@@ -48,6 +48,7 @@ __all__ = [
     "staging_folder",
     "manifest_files",
     "check_replaceable",
+    "check_output_folder",
     "write_manifest",
     "publish_folder",
     "report_beside",
@@ -394,6 +395,21 @@ def check_replaceable(out: Path, command: str, marker: str | None = None) -> Non
     if foreign:
         raise FileExistsError(f"--overwrite refused: {out} holds files {command} did not write ({_show(foreign)}); "
                               "move them away or choose another folder; nothing was deleted")  # fmt: skip
+
+
+def check_output_folder(out: Path, overwrite: bool, command: str, marker: str | None = None) -> None:
+    """Refuse an ``--out`` folder ``command`` may not write, before any work: a file, a folder with content without
+    ``overwrite``, or with ``overwrite`` anything :func:`check_replaceable` refuses. A missing or empty folder passes.
+
+    Raises:
+        FileExistsError: one line naming ``out``; nothing was touched.
+    """
+    if out.exists() and not out.is_dir():
+        raise FileExistsError(f"--out {out} exists and is not a directory")
+    if out.exists() and any(out.iterdir()):
+        if not overwrite:
+            raise FileExistsError(f"--out {out} exists and is not empty; pass --overwrite to replace it")
+        check_replaceable(out, command, marker)
 
 
 def publish_folder(staging: Path, out: Path, command: str, marker: str | None = None) -> None:

@@ -1,4 +1,4 @@
-"""Write ``configs/NAME.yaml`` for every zoo entry (run after changing a factory in ``occkit/zoo.py``).
+"""Write ``configs/NAME.yaml`` for every zoo entry (run after changing an entry in ``occkit/zoo/<family>.py``).
 
     python scripts/write_configs.py
 """

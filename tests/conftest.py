@@ -1,4 +1,5 @@
-"""Shared fixtures: a small, geometrically consistent synthetic Batch for model tests."""
+"""Shared fixtures: a small, geometrically consistent synthetic Batch for model tests, and the synthetic worlds that
+several test files read, simulated once per session."""
 
 from __future__ import annotations
 
@@ -6,6 +7,7 @@ import contextlib
 import functools
 import importlib.util
 import math
+import shutil
 import sys
 from pathlib import Path
 
@@ -156,6 +158,28 @@ def torch_threads(count: int):
 def synthetic_batch():
     """Factory: ``synthetic_batch(**kwargs)`` -> :func:`make_batch`."""
     return make_batch
+
+
+@pytest.fixture(scope="session")
+def synthetic_world(tmp_path_factory):
+    """Factory: ``synthetic_world(**settings)`` -> the root of a world simulated with ``SimConfig(**settings)``, once
+    per session for each set of settings. The world is shared: read it only. ``synthetic_world(copy_to=path,
+    **settings)`` copies it to ``path`` for a test that alters its files."""
+    from occkit.sim.generate import SimConfig, simulate_dataset
+
+    worlds: dict[tuple, Path] = {}
+
+    def world(copy_to: Path | None = None, **settings) -> Path:
+        key = tuple(sorted(settings.items()))
+        if key not in worlds:
+            worlds[key] = tmp_path_factory.mktemp("world") / "data"
+            simulate_dataset(SimConfig(**settings), worlds[key])
+        if copy_to is None:
+            return worlds[key]
+        shutil.copytree(worlds[key], copy_to)
+        return copy_to
+
+    return world
 
 
 @functools.cache

@@ -56,6 +56,7 @@ def _cases() -> list[Bad]:
     data, out = "{work}/user", "{work}/out"
     return [
         Bad(("info", "--json", "{work}"), "is a folder"),
+        Bad(("zoo", "diff", "daocc", "no_such_entry"), "unknown zoo entry 'no_such_entry'"),
         Bad(("sim", "--out", "{work}/a-file.txt"), "a-file.txt"),
         Bad(("sim", "--out", "{work}/user", "--overwrite", "--scenes", "1", "--frames", "1"), "nothing was deleted"),
         Bad(("sim", "--out", f"{out}/w", "--set", "world.density=1e308"), "world.density"),

@@ -17,7 +17,6 @@ from occkit.metrics.realtime import rt_miou, rt_miou_table
 from occkit.models import inference
 from occkit.models.complexity import count_macs
 from occkit.models.inference import fix_calibration, fold_conv_bn, prepare_for_inference, to_channels_last
-from occkit.sim.generate import SimConfig, simulate_dataset
 
 TINY = ("flashocc_tiny", "da_occ_tiny", "daocc_tiny")
 # A bench run that measures nothing for long: one pass of each kind and a 64 x 64 GEMM.
@@ -25,11 +24,9 @@ QUICK = {"iters": 1, "warmup": 1, "stage_iters": 1, "ablation_iters": 1, "gemm_s
 
 
 @pytest.fixture(scope="module")
-def world(tmp_path_factory):
+def world(synthetic_world):
     """A one-scene, two-frame synthetic world with 176 x 99 images: enough for every tiny model's input."""
-    root = tmp_path_factory.mktemp("bench") / "world"
-    simulate_dataset(SimConfig(scenes=1, frames=2, image_size=(176, 99)), root)
-    return root
+    return synthetic_world(scenes=1, frames=2, image_size=(176, 99))
 
 
 def _randomise_batch_norms(model: nn.Module) -> None:

@@ -10,7 +10,8 @@ from pathlib import Path
 import pytest
 
 from occkit import __version__
-from occkit.cli import COMMANDS, LABEL_SPACE_NAMES, main
+from occkit.cli import COMMANDS, main
+from occkit.commands.common import LABEL_SPACE_NAMES
 from occkit.label_space import LABEL_SPACES
 
 

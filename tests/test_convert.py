@@ -615,11 +615,8 @@ def test_cli_convert_end_to_end(tmp_path, capsys):
     assert "is a folder" in capsys.readouterr().err
 
 
-def test_cli_eval_scores_converted_weights_with_the_entrys_experiment(tmp_path, capsys):
-    from occkit.sim.generate import SimConfig, simulate_dataset
-
-    world = tmp_path / "world"
-    simulate_dataset(SimConfig(scenes=1, frames=2, image_size=(176, 99)), world)
+def test_cli_eval_scores_converted_weights_with_the_entrys_experiment(tmp_path, capsys, synthetic_world):
+    world = synthetic_world(scenes=1, frames=2, image_size=(176, 99))
     reference = tmp_path / "flashocc_tiny.pth"
     torch.save({"state_dict": flashocc_state(tiny=True)}, reference)
     weights = tmp_path / "flashocc_tiny.safetensors"

@@ -14,7 +14,6 @@ from occkit.data import dataset as dataset_module
 from occkit.data.collate import collate
 from occkit.data.dataset import DatasetConfig, OccupancyDataset, SampleError
 from occkit.data.transforms import BevAugConfig, ImageAugConfig, augment_image
-from occkit.sim.generate import SimConfig, simulate_dataset
 
 CAMERAS = ("CAM_FRONT", "CAM_BACK")
 IMAGE_AUG = ImageAugConfig(final_size=(64, 176))
@@ -22,11 +21,9 @@ TRAIN_AUG = {"augment": True, "bev_aug": BevAugConfig(flip_x=0.5, flip_y=0.5)}
 
 
 @pytest.fixture(scope="module")
-def world(tmp_path_factory) -> Path:
+def world(synthetic_world) -> Path:
     """2 scenes x 3 key frames (scene-0001 trains, scene-0002 validates)."""
-    root = tmp_path_factory.mktemp("history") / "data"
-    simulate_dataset(SimConfig(scenes=2, frames=3, seed=0, image_size=(176, 99), cameras=CAMERAS), root)
-    return root
+    return synthetic_world(scenes=2, frames=3, seed=0, image_size=(176, 99), cameras=CAMERAS)
 
 
 def _dataset(root: Path, **options) -> OccupancyDataset:

@@ -22,7 +22,6 @@ from occkit.data.dataset import DatasetConfig, OccupancyDataset, SampleError
 from occkit.data.transforms import BevAugConfig, ImageAugConfig
 from occkit.engine.evaluate import evaluate_model, evaluation_dataset, load_trained
 from occkit.engine.train import train
-from occkit.sim.generate import SimConfig, simulate_dataset
 from occkit.zoo import load_experiment
 
 REPO = Path(__file__).resolve().parents[1]
@@ -54,10 +53,10 @@ SMALL = (
 
 
 @pytest.fixture(scope="module")
-def data(tmp_path_factory) -> Path:
+def data(tmp_path_factory, synthetic_world) -> Path:
     """2 scenes x 3 key frames (scene-0001 trains, scene-0002 validates); one frame of each split is broken."""
-    root = tmp_path_factory.mktemp("on_error") / "data"
-    simulate_dataset(SimConfig(scenes=2, frames=3, seed=0, image_size=(176, 99), cameras=CAMERAS), root)
+    root = synthetic_world(copy_to=tmp_path_factory.mktemp("on_error") / "data", scenes=2, frames=3, seed=0,
+                           image_size=(176, 99), cameras=CAMERAS)
     records = OccupancyDataset(DatasetConfig(root=str(root), split="all", cameras=CAMERAS, sweeps=-1)).records
     (root / records[1].cameras["CAM_BACK"].path).unlink()  # train split, index 1
     image = root / records[4].cameras["CAM_FRONT"].path  # val split, index 1

@@ -36,12 +36,19 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     # consumers of trained models
     ("occkit.bench", "occkit.export", "occkit.viz", "occkit.environment", "occkit.robustness"),
     ("occkit.demo",),
-    ("occkit.cli", "occkit.__main__"),
+    ("occkit.cli", "occkit.commands", "occkit.__main__"),
 )  # fmt: skip
 
 
 #: Packages of one layer that never import each other.
 INDEPENDENT: tuple[tuple[str, str], ...] = (("occkit.data", "occkit.sim"), ("occkit.labeling", "occkit.sim"))
+
+#: Imports the layer order allows but the design does not: a model knows nothing of datasets or schedules (a zoo
+#: entry, ``occkit/zoo/<family>.py``, pairs a model config with them).
+FORBIDDEN: tuple[tuple[str, str], ...] = (
+    ("occkit.models", "occkit.data.dataset"),
+    ("occkit.models", "occkit.experiment"),
+)
 
 
 def _module_name(path: Path) -> str:
@@ -107,6 +114,13 @@ def test_independent_packages_never_import_each_other():
                 for a, b in INDEPENDENT for one, other in ((a, b), (b, a))
                 if _within(module, one) and _within(target, other)]  # fmt: skip
     assert not crossing, "imports between independent packages:\n" + "\n".join(crossing)
+
+
+def test_forbidden_imports_are_absent():
+    found = [f"{module} imports {target}" for module, targets in _graph().items() for target in sorted(targets)
+             for importer, imported in FORBIDDEN
+             if _within(module, importer) and _within(target, imported)]  # fmt: skip
+    assert not found, "imports the design forbids:\n" + "\n".join(found)
 
 
 def _cycles(graph: dict[str, set[str]]) -> list[list[str]]:

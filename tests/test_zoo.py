@@ -133,3 +133,36 @@ def test_training_targets_follow_the_switches():
     assert zoo.model_config("da_occ_depth")[1].training_targets == ("LiDAR depth", "LiDAR heights")
     assert zoo.model_config("da_occ_tiny")[1].training_targets == ("LiDAR heights",)
     assert zoo.model_config("flashocc_tiny")[1].training_targets == ()
+
+
+def test_zoo_diff_lists_the_settings_an_entry_changes_and_the_cli_prints_them(capsys):
+    from occkit.cli import main
+
+    assert zoo.diff("flashocc_m0", "flashocc_m1") == [
+        ("model.bev.neck_channels", 128, 256),
+        ("model.lss.depth_range", [1.0, 45.0, 1.0], [1.0, 45.0, 0.5]),
+        ("model.occupancy.hidden_channels", 128, 256),
+        ("model.occupancy.in_channels", 128, 256),
+    ]
+    assert zoo.diff("daocc", "daocc") == []
+    ((_, before, after),) = [d for d in zoo.diff("daocc", "daocc_no_detection") if d[0] == "model.detection"]
+    assert isinstance(before, dict) and after is None
+    assert main(["zoo", "diff", "daocc", "daocc_no_detection"]) == 0
+    assert capsys.readouterr().out.splitlines() == [
+        "daocc_no_detection differs from daocc in 2 setting(s):",
+        "  data.boxes: True -> False",
+        f"  model.detection: {{...}} ({len(before)} settings) -> None",
+    ]
+    assert main(["zoo", "diff", "daocc"]) == 2
+    assert "occkit zoo diff takes two entries, got 1" in capsys.readouterr().err
+    assert main(["zoo", "list"]) == 0
+    listed = capsys.readouterr().out.splitlines()
+    assert [line.split()[0] for line in listed] == zoo.names()
+
+
+def test_an_entry_registers_once_under_its_function_name():
+    from occkit.zoo.registry import ENTRIES, preset
+
+    assert ENTRIES["daocc_tiny"].architecture == "daocc" and ENTRIES["daocc_tiny"].make.__name__ == "daocc_tiny"
+    with pytest.raises(ValueError, match="zoo entry 'daocc_tiny' is registered twice"):
+        preset("daocc")(ENTRIES["daocc_tiny"].make)

@@ -241,8 +241,7 @@ def _relayout(tensor: Tensor, layout: str, sparse: str) -> tuple[Tensor, str | N
 
 def _entries_of(architecture: str | None) -> list[str]:
     """The zoo entries of an architecture (from its declaration: no preset is run)."""
-    arch = zoo.ARCHITECTURES.get(architecture) if architecture is not None else None
-    return sorted(arch.presets) if arch is not None else []
+    return zoo.names(architecture) if architecture in zoo.ARCHITECTURES else []
 
 
 def _check_entry(entry: str) -> None:

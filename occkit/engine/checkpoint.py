@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from occkit.config import to_dict
+from occkit.config import MISSING, leaf_differences, to_dict
 from occkit.data.dataset import DatasetConfig
 from occkit.experiment import TrainConfig
 from occkit.outputs import fsync_folder, write_atomic
@@ -152,7 +152,7 @@ def check_compatible(payload: dict[str, Any], architecture: str, model_config: d
     if payload["architecture"] != architecture:
         raise ValueError(f"{path} holds a {payload['architecture']} model, not {architecture}")
     saved = _fill(payload["experiment"]["model"], _defaults(architecture)["model"])
-    differences = _differences(saved, model_config, "model")
+    differences = leaf_differences(saved, model_config, "model")
     if differences:
         raise ValueError(f"{path} was trained with another model config: {_describe(differences[0])}"
                          + (f" (and {len(differences) - 1} more differences)" if len(differences) > 1 else ""))
@@ -178,7 +178,7 @@ def check_resumable(payload: dict[str, Any], experiment: dict, path: str | Path,
     if payload["architecture"] != architecture:
         raise ValueError(f"{path} holds a {payload['architecture']} model, not {architecture}")
     saved = _fill(payload["experiment"], _defaults(architecture))
-    differences = _differences(saved, experiment, "")
+    differences = leaf_differences(saved, experiment, "")
     allowed = [*BOOKKEEPING_KEYS, *allow]
     refused = [d for d in differences if not any(d[0] == key or d[0].startswith(key + ".") for key in allowed)]
     if refused:
@@ -205,21 +205,7 @@ def _fill(saved: Any, defaults: Any) -> Any:
     return filled
 
 
-_MISSING = object()
-
-
-def _differences(saved: Any, current: Any, key: str) -> list[tuple[str, Any, Any]]:
-    """``(key, saved value, current value)`` of every leaf that differs (a missing side is :data:`_MISSING`)."""
-    if isinstance(saved, dict) and isinstance(current, dict):
-        found = []
-        for name in sorted(set(saved) | set(current)):
-            found += _differences(saved.get(name, _MISSING), current.get(name, _MISSING),
-                                  f"{key}.{name}" if key else name)  # fmt: skip
-        return found
-    return [] if saved == current else [(key, saved, current)]
-
-
 def _describe(difference: tuple[str, Any, Any]) -> str:
     key, saved, current = difference
-    show = lambda value: "absent" if value is _MISSING else repr(value)  # noqa: E731
+    show = lambda value: "absent" if value is MISSING else repr(value)  # noqa: E731
     return f"{key} is {show(saved)} in the checkpoint but {show(current)} here"

@@ -35,7 +35,7 @@ from occkit.label_space import LabelSpace, label_space
 from occkit.labeling.aggregate import AggregateConfig, aggregate_scene
 from occkit.labeling.sources import ScenePlan, lidarseg_to_occ3d, plan_scenes
 from occkit.labeling.voxels import DENSIFY_METHODS, DensifyConfig, densify_poisson, key_frame_points, vote
-from occkit.outputs import OutputLock, check_replaceable, publish_folder, staging_folder
+from occkit.outputs import OutputLock, check_output_folder, publish_folder, staging_folder
 
 __all__ = ["LabelConfig", "SUMMARY_FILE", "check_label_output", "label_scene", "label_dataset"]
 
@@ -156,12 +156,7 @@ def check_label_output(out: Path, overwrite: bool) -> None:
     """Refuse an ``out`` that :func:`label_dataset` may not write: a file, or a non-empty folder unless
     ``overwrite`` and it holds a previous ``occkit label`` output and nothing else
     (:func:`occkit.outputs.check_replaceable`: every file, nested ones too, listed in its manifest)."""
-    if out.exists() and not out.is_dir():
-        raise FileExistsError(f"--out {out} exists and is not a directory")
-    if out.exists() and any(out.iterdir()):
-        if not overwrite:
-            raise FileExistsError(f"--out {out} exists and is not empty; pass --overwrite to replace it")
-        check_replaceable(out, COMMAND, SUMMARY_FILE)
+    check_output_folder(out, overwrite, COMMAND, SUMMARY_FILE)
 
 
 def _label_scene_reporting(plan: ScenePlan, lookup: np.ndarray, config: LabelConfig, out: Path, queue) -> dict:

@@ -13,8 +13,9 @@ the inference fast path reuses the first one (:attr:`OccupancyModel.reuse_plan`,
 :func:`occkit.models.inference.fix_calibration`); the deployed network (:mod:`occkit.models.deployment`) keeps it as
 constant buffers. All of them run the same :meth:`~OccupancyModel.network`.
 
-An :class:`Architecture` is what the rest of occkit knows of a model family: its config and model classes, its
-zoo presets and its benchmark stages, declared at the bottom of the family's model file.
+An :class:`Architecture` is what the rest of occkit knows of a model family: its config and model classes and its
+benchmark stages, declared at the bottom of the family's model file. Its zoo entries (whole experiments: model,
+data, schedule) live in ``occkit/zoo/<family>.py``.
 """
 
 from __future__ import annotations
@@ -28,7 +29,6 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
-from occkit.experiment import Experiment
 from occkit.models.heads.flow import FlowHead
 from occkit.models.heads.occupancy import occupancy_prediction
 from occkit.models.temporal import StreamMemory, TemporalFusion
@@ -274,8 +274,6 @@ class Architecture:
     """The model's config dataclass."""
     model: Callable[[Any], OccupancyModel]
     """The model class: ``model(config)``."""
-    presets: Mapping[str, Callable[[], Experiment]]
-    """Zoo entry name -> the function returning its whole experiment (its docstring describes the entry)."""
     stages: Mapping[str, tuple[str, ...]]
     """Benchmark stage -> the model's child modules that make it up; work outside them is reported as ``other``."""
 

@@ -20,7 +20,7 @@ from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 from occkit.nuscenes import LIDARSEG_TABLE, TABLE_NAMES
-from occkit.outputs import OutputLock, check_replaceable, publish_folder, staging_folder
+from occkit.outputs import OutputLock, check_output_folder, publish_folder, staging_folder
 from occkit.sim.config import SimConfig, scene_name
 from occkit.sim.scene import simulate_scene
 
@@ -42,16 +42,11 @@ def check_output(out: Path, overwrite: bool) -> None:
     """Refuse an ``out`` that :func:`simulate_dataset` may not write (before any work): a file, the current folder,
     a folder with content without ``overwrite``, or with ``overwrite`` anything but a dataset it wrote holding
     nothing else (:func:`occkit.outputs.check_replaceable`: every file, nested ones too, listed in its manifest)."""
-    if out.exists() and not out.is_dir():
-        raise FileExistsError(f"{out} exists and is not a directory")
     here = Path.cwd().resolve()
     if out.resolve() == here or out.resolve() in here.parents:
         raise ValueError(f"--out {out} is the current folder or holds it: occkit sim writes a dataset beside it and "
                          "renames it into place; give a folder of its own, e.g. data/synth")
-    if out.exists() and any(out.iterdir()):
-        if not overwrite:
-            raise FileExistsError(f"{out} exists and is not empty; pass --overwrite to replace it")
-        check_replaceable(out, COMMAND, DATASET_MARKER)
+    check_output_folder(out, overwrite, COMMAND, DATASET_MARKER)
 
 
 def _prepare_output(out: Path, overwrite: bool) -> Path:

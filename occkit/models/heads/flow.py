@@ -24,19 +24,17 @@ input how it moves, and the occupancy trains as without the head.
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass
 
 import torch
 from torch import Tensor, nn
 
 from occkit.classes import OCC3D
-from occkit.experiment import Experiment
 from occkit.geometry.grid import VoxelGrid
 from occkit.geometry.se3 import transform_points
 from occkit.models.heads.occupancy import column_mlp
 
-__all__ = ["MotionConfig", "MotionEncoder", "FlowHeadConfig", "FlowHead", "check_motion_input", "with_flow_head"]
+__all__ = ["MotionConfig", "MotionEncoder", "FlowHeadConfig", "FlowHead", "check_motion_input"]
 
 
 @dataclass(frozen=True)
@@ -173,14 +171,3 @@ class FlowHead(nn.Module):
         if not means:
             return flow.sum() * 0.0
         return self.cfg.loss_weight * torch.stack(means).mean()
-
-
-def with_flow_head(experiment: Experiment, motion: bool = False) -> Experiment:
-    """``experiment`` with a flow head on its occupancy head's per-cell features, and data whose labels carry flow
-    (``data.flow``): how the zoo's ``*_flow`` entries are made. ``motion`` adds the LiDAR motion input, one channel
-    per sweep the data loads, and reads the occupancy head's features detached (the motion input carries the motion)."""
-    channels = experiment.model.occupancy.hidden_channels
-    motion_cfg = MotionConfig(sweeps=max(experiment.data.sweeps, 0)) if motion else None
-    flow = FlowHeadConfig(in_channels=channels, motion=motion_cfg, detach_features=motion)
-    model = dataclasses.replace(experiment.model, flow=flow)
-    return dataclasses.replace(experiment, model=model, data=dataclasses.replace(experiment.data, flow=True))

@@ -1,12 +1,14 @@
-"""Model zoo: one line per architecture; every name it lists comes from that architecture's model file.
+"""Model zoo: one line per architecture, and the entries each family registers in ``occkit/zoo/<family>.py``.
 
     >>> from occkit import zoo
     >>> zoo.names()[:3]
     ['da_occ', 'da_occ_tiny', 'daocc']
     >>> model = zoo.build("daocc_tiny")
 
-Each architecture's model file declares an :class:`~occkit.models.base.Architecture`: its config and model classes,
-its presets (functions named after their zoo entries, returning the whole experiment) and its benchmark stages.
+Each architecture's model file declares an :class:`~occkit.models.base.Architecture`: its config and model classes
+and its benchmark stages. Its zoo entries are functions named after them, returning the whole experiment, in
+``occkit/zoo/<family>.py``, registered with :func:`occkit.zoo.registry.preset`; the model files know nothing of
+datasets or schedules.
 Every entry has a YAML twin in ``configs/NAME.yaml``: the whole experiment (``architecture``, ``model``, ``data``,
 ``train``), written by :func:`config_yaml` and kept equal to :func:`experiment` by a test, so a config file read with
 :func:`load_experiment` and a name given to :func:`build` mean the same model.
@@ -20,13 +22,20 @@ from pathlib import Path
 from typing import Any
 
 from occkit import experiment as _experiment
-from occkit.config import ConfigError
+from occkit.config import ConfigError, leaf_differences
 from occkit.experiment import Experiment, PaperRow, experiment_yaml
-from occkit.models import da_occ, daocc, flashocc, pretrained
+from occkit.models import pretrained
 from occkit.models.base import Architecture, OccupancyModel
+from occkit.models.da_occ import ARCHITECTURE as DA_OCC
+from occkit.models.daocc import ARCHITECTURE as DAOCC
+from occkit.models.flashocc import ARCHITECTURE as FLASHOCC
 from occkit.shipped import SYNTHETIC, load_shipped
+from occkit.zoo import da_occ as _da_occ_entries  # noqa: F401 -- each family module registers its entries
+from occkit.zoo import daocc as _daocc_entries  # noqa: F401
+from occkit.zoo import flashocc as _flashocc_entries  # noqa: F401
+from occkit.zoo.registry import ENTRIES
 
-__all__ = ["ARCHITECTURES", "names", "description", "paper_row", "needed_files", "architecture", "model_config",
+__all__ = ["ARCHITECTURES", "names", "description", "paper_row", "needed_files", "architecture", "diff", "model_config",
            "experiment", "build", "build_from_config", "config_yaml", "config_class", "experiment_from_dict",
            "load_experiment"]
 
@@ -34,26 +43,22 @@ __all__ = ["ARCHITECTURES", "names", "description", "paper_row", "needed_files",
 ARCHITECTURES: dict[str, Architecture] = {
     arch.name: arch
     for arch in (
-        daocc.ARCHITECTURE,
-        flashocc.ARCHITECTURE,
-        da_occ.ARCHITECTURE,
+        DAOCC,
+        FLASHOCC,
+        DA_OCC,
     )
 }
 
-_ENTRIES: dict[str, Callable[[], Experiment]] = {
-    name: preset for arch in ARCHITECTURES.values() for name, preset in arch.presets.items()
-}
 
-
-def names() -> list[str]:
-    """Zoo entry names, sorted."""
-    return sorted(_ENTRIES)
+def names(architecture: str | None = None) -> list[str]:
+    """Zoo entry names, sorted; with ``architecture``, only that architecture's (no preset is run)."""
+    return sorted(name for name, entry in ENTRIES.items() if architecture in (None, entry.architecture))
 
 
 def _entry(name: str) -> Callable[[], Experiment]:
-    if name not in _ENTRIES:
+    if name not in ENTRIES:
         raise KeyError(f"unknown model {name!r}; the zoo has: {', '.join(names())}")
-    return _ENTRIES[name]
+    return ENTRIES[name].make
 
 
 def description(name: str) -> str:
@@ -80,6 +85,13 @@ def needed_files(experiment: Experiment) -> list[str]:
 def experiment(name: str) -> Experiment:
     """The full experiment (model, data, training) of a zoo entry, as ``configs/NAME.yaml`` holds it."""
     return _entry(name)()
+
+
+def diff(first: str, second: str) -> list[tuple[str, Any, Any]]:
+    """How entry ``second`` differs from entry ``first``: ``(setting, first's value, second's value)`` for every
+    setting of their experiments that differs (``model.bev.neck_channels``, ``data.sweeps``, ``train.epochs``; the
+    architecture as ``architecture``), in key order; :data:`occkit.config.MISSING` where a side lacks the setting."""
+    return leaf_differences(experiment(first).to_dict(), experiment(second).to_dict())
 
 
 def model_config(name: str) -> tuple[str, Any]:
@@ -137,7 +149,7 @@ def load_experiment(source: str | Path, overrides: Sequence[str] = ()) -> Experi
         FileNotFoundError: neither a file nor a zoo name.
     """
     path = Path(source)
-    if not path.exists() and str(source) in _ENTRIES:
+    if not path.exists() and str(source) in ENTRIES:
         return experiment_from_dict(experiment(str(source)).to_dict(), f"zoo entry {source}", overrides)
     if not path.exists():
         raise FileNotFoundError(f"config {source} does not exist (zoo names: {', '.join(names())})")

@@ -1,0 +1,1 @@
+"""The ``occkit`` commands' arguments and glue, one module per group of commands; :mod:`occkit.cli` dispatches."""
