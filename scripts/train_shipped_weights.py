@@ -9,8 +9,8 @@ checkpoint every 200 steps, and a rerun resumes from the newest checkpoint (a ru
 it with ``--device cuda``). With ``--write``, the last weights are rounded to half precision, scored on the demo
 world's held-out scenes (mIoU, IoU, RayIoU, per class) and written with their card (:mod:`occkit.shipped`): the
 world, steps, training time (summed from the run log's throughput, so resumed runs count only their own steps), the
-device, this command, the scores, the curve of held-out mIoU over the run and whether it converged (less than 0.5
-mIoU gained over the last fifth of the run).
+devices (each session's, from the run folder's ``sessions.jsonl``), this command, the scores, the curve of held-out
+mIoU over the run and whether it converged (less than 0.5 mIoU gained over the last fifth of the run).
 """
 
 from __future__ import annotations
@@ -40,6 +40,43 @@ ENTRIES = ("daocc_tiny", "da_occ_tiny", "flashocc_tiny")
 CONVERGED_GAIN = 0.005
 #: Validations a curve needs before it can say so.
 MIN_CURVE_POINTS = 4
+#: In a run folder: one line per training session, the step it started from and the device it ran on, so that a card
+#: says where each part of a run that moved between machines was trained.
+SESSIONS = "sessions.jsonl"
+
+
+def record_session(run: Path, device: str) -> None:
+    """Append this session (the step the trainer resumes from, which is its newest checkpoint's, and ``device``)."""
+    checkpoints = sorted(run.glob("step-*.pt"))
+    start = int(checkpoints[-1].stem.removeprefix("step-")) if checkpoints else 0
+    run.mkdir(parents=True, exist_ok=True)
+    with open(run / SESSIONS, "a") as handle:
+        handle.write(json.dumps({"from_step": start, "device": device}) + "\n")
+
+
+def devices(run: Path, steps: int, fallback: str) -> str:
+    """Where the run's first ``steps`` steps were trained: ``"A (steps 0-2304), B (steps 2304-4000)"``, from its
+    sessions (a later session that resumed from an earlier step replaces what it retrained); ``fallback`` for a run
+    without a record."""
+    path = run / SESSIONS
+    sessions = [json.loads(line) for line in path.read_text().splitlines() if line.strip()] if path.is_file() else []
+    spans: list[list] = []  # [device, first step, last step]
+    for session in sessions:
+        start = session["from_step"]
+        spans = [span for span in spans if span[1] < start]
+        if spans:
+            spans[-1][2] = min(spans[-1][2], start)
+        spans.append([session["device"], start, steps])
+    spans = [span for span in spans if span[1] < steps]
+    if not spans:
+        return fallback
+    merged = [spans[0]]
+    for span in spans[1:]:
+        if span[0] == merged[-1][0]:
+            merged[-1][2] = span[2]
+        else:
+            merged.append(span)
+    return ", ".join(f"{device} (steps {first}-{last})" for device, first, last in merged)
 
 
 def ensure_world(root: Path, world: dict) -> None:
@@ -109,7 +146,8 @@ def package(entry: str, run: Path, demo: Path, world: dict, device: str, trained
         notes = f"{'converged' if done else 'not converged'}: {100 * gain:+.2f} mIoU over the last fifth of the run"
     card = write_shipped(model, experiment.architecture, {
         "entry": entry, "world": {**world, "image_size": list(world["image_size"])}, "steps": steps,
-        "train_seconds": round(training_seconds(run, experiment.train.batch_size), 1), "device": trained_on,
+        "train_seconds": round(training_seconds(run, experiment.train.batch_size), 1),
+        "device": devices(run, steps, trained_on),
         "command": command, "curve": points, "notes": notes,
         "scores": {"miou": scores["miou"], "iou": scores["iou"], "rayiou": scores.get("rayiou"),
                    "per_class": scores["per_class_iou"]},
@@ -139,10 +177,12 @@ def main() -> int:
         ensure_world(args.world, TRAIN_WORLD)
     command = "python scripts/train_shipped_weights.py " + shlex.join(sys.argv[1:])
     threads = torch.get_num_threads()
-    trained_on = f"{args.device} ({threads} threads)" if args.device == "cpu" else torch.cuda.get_device_name()
+    trained_on = (f"cpu ({threads} thread{'' if threads == 1 else 's'})" if args.device == "cpu"
+                  else torch.cuda.get_device_name())
     for entry in args.entry or ENTRIES:
         if not args.no_train:
             experiment = run_experiment(entry, args.world, args.epochs, args.device, args.workers)
+            record_session(args.runs / entry, trained_on)
             # A run may move between machines (a GPU, then a CPU): the world is the same TRAIN_WORLD in another folder.
             run = train(experiment, args.runs / entry, resume="auto", allow_changes=("train.workers", "data.root"),
                         device=args.device)  # fmt: skip

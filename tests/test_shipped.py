@@ -131,13 +131,18 @@ def test_every_command_that_runs_a_model_takes_the_shipped_weights(installed, wo
     assert report["checkpoint"] == f"synthetic ({ENTRY})"
 
 
-def test_a_run_converges_only_on_a_plateau_of_enough_validations():
+def _training_script():
     import importlib.util
 
     path = Path(__file__).resolve().parents[1] / "scripts" / "train_shipped_weights.py"
     spec = importlib.util.spec_from_file_location("train_shipped_weights", path)
     script = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(script)
+    return script
+
+
+def test_a_run_converges_only_on_a_plateau_of_enough_validations():
+    script = _training_script()
 
     def points(values):
         return [{"step": 100 * (i + 1), "miou": v, "iou": 0.6} for i, v in enumerate(values)]
@@ -146,3 +151,15 @@ def test_a_run_converges_only_on_a_plateau_of_enough_validations():
     rising, gain = script.converged(points([0.10, 0.15, 0.20, 0.25, 0.30]))
     assert plateau and not rising and gain == pytest.approx(0.05)
     assert script.converged(points([0.10, 0.09, 0.08])) == (False, pytest.approx(float("nan"), nan_ok=True))
+
+
+def test_a_card_names_every_device_a_run_trained_on(tmp_path):
+    script = _training_script()
+    assert script.devices(tmp_path, 500, "cpu (2 threads)") == "cpu (2 threads)"  # no record: the session's own
+    script.record_session(tmp_path, "NVIDIA H100")  # a fresh run starts at step 0
+    (tmp_path / "step-00002304.pt").touch()
+    script.record_session(tmp_path, "cpu (1 threads)")  # resumed from its newest checkpoint
+    (tmp_path / "step-00002400.pt").touch()
+    script.record_session(tmp_path, "cpu (1 threads)")
+    assert script.devices(tmp_path, 3000, "?") == "NVIDIA H100 (steps 0-2304), cpu (1 threads) (steps 2304-3000)"
+    assert script.devices(tmp_path, 2000, "?") == "NVIDIA H100 (steps 0-2000)"
