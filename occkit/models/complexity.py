@@ -102,7 +102,9 @@ def count_macs(model: nn.Module, run: Callable[[], object]) -> MacCount:
     handles = [m.register_forward_hook(hook(name)) for name, m in sparse.items()]
     # The pairs are read from spconv's index tensors, so sparse encoders count through spconv (the same pairs as any
     # backend's, hence the same MACs).
-    encoders = [m for m in model.modules() if hasattr(m, "backend") and hasattr(m, "run_rows")]
+    from occkit.models.lidar_encoder import SparseEncoder
+
+    encoders = [m for m in model.modules() if isinstance(m, SparseEncoder)]
     backends = [encoder.backend for encoder in encoders]
     try:
         for encoder in encoders:

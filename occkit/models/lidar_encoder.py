@@ -40,7 +40,7 @@ from occkit.models.sparse import (
     spconv,
 )
 from occkit.models.sparse_gemm import build_neighbour_tables, gather_gemm_conv
-from occkit.models.sparse_rules import ConvSpec, encoder_conv_specs
+from occkit.models.sparse_rules import ConvSpec, coordinate_keys, encoder_conv_specs
 
 __all__ = [
     "SPARSE_BACKENDS",
@@ -398,7 +398,7 @@ class SparseEncoder(nn.Module):
         ``c * Z' + z``; as ``forward`` returns it."""
         size_x, size_y, size_z = self.output_shape
         channels = features.shape[1]
-        rows = ((coords[:, 0] * size_x + coords[:, 1]) * size_y + coords[:, 2]) * size_z + coords[:, 3]
+        rows = coordinate_keys(coords, self.output_shape)
         volume = features.new_zeros(batch_size * size_x * size_y * size_z, channels)
         volume = volume.scatter(0, rows[:, None].expand(-1, channels), features)
         volume = volume.view(batch_size, size_x, size_y, size_z, channels)

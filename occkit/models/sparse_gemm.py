@@ -186,16 +186,22 @@ def _block_rows(width: int, element_size: int) -> int:
     return max(64, BLOCK_BYTES // max(1, width * element_size))
 
 
-def _gather_gemm(rows: Tensor, table: Tensor, matrix: Tensor) -> Tensor:
-    """``out[o] = concat_k(rows_padded[table[o, k]]) @ matrix``, block by block; ``rows_padded`` is ``rows`` with a
-    zero row appended at index ``len(rows)``. ``(R, C) x (M, K) x (K * C, D) -> (M, D)``."""
+def _gathered_blocks(rows: Tensor, table: Tensor):
+    """``(start, block)`` for blocks of the table's rows: ``block[o] = concat_k(rows_padded[table[start + o, k]])``,
+    ``rows_padded`` being ``rows`` with a zero row appended at index ``len(rows)``."""
     padded = torch.cat((rows, rows.new_zeros(1, rows.shape[1])))
     width = table.shape[1] * rows.shape[1]
-    out = rows.new_empty(table.shape[0], matrix.shape[1])
     step = _block_rows(width, rows.element_size())
     for start in range(0, table.shape[0], step):
-        block = padded.index_select(0, table[start : start + step].reshape(-1)).view(-1, width)
-        torch.mm(block, matrix, out=out[start : start + step])
+        yield start, padded.index_select(0, table[start : start + step].reshape(-1)).view(-1, width)
+
+
+def _gather_gemm(rows: Tensor, table: Tensor, matrix: Tensor) -> Tensor:
+    """``out[o] = concat_k(rows_padded[table[o, k]]) @ matrix``, block by block (:func:`_gathered_blocks`).
+    ``(R, C) x (M, K) x (K * C, D) -> (M, D)``."""
+    out = rows.new_empty(table.shape[0], matrix.shape[1])
+    for start, block in _gathered_blocks(rows, table):
+        torch.mm(block, matrix, out=out[start : start + block.shape[0]])
     return out
 
 
@@ -221,13 +227,9 @@ class _GatherGemmConv(torch.autograd.Function):
             per_offset = weight.reshape(c_out, offsets, c_in).transpose(0, 1).reshape(offsets * c_out, c_in)
             grad_features = _gather_gemm(grad_out, transposed, per_offset)
         if ctx.needs_input_grad[1]:
-            padded = torch.cat((features, features.new_zeros(1, c_in)))
-            width = offsets * c_in
-            grad = features.new_zeros(c_out, width)
-            step = _block_rows(width, features.element_size())
-            for start in range(0, table.shape[0], step):
-                block = padded.index_select(0, table[start : start + step].reshape(-1)).view(-1, width)
-                grad.addmm_(grad_out[start : start + step].t(), block)
+            grad = features.new_zeros(c_out, offsets * c_in)
+            for start, block in _gathered_blocks(features, table):
+                grad.addmm_(grad_out[start : start + block.shape[0]].t(), block)
             grad_weight = grad.view_as(weight)
         return grad_features, grad_weight, None, None
 
