@@ -1,7 +1,9 @@
 """Class taxonomies of the occupancy benchmarks and of nuScenes detection.
 
 Ids follow each benchmark's files exactly: Occ3D-nuScenes uses 0..16 for semantic classes and 17 for free space;
-SurroundOcc uses 0 for empty and 1..16 for the same semantic classes; 255 is ignored everywhere.
+SurroundOcc uses 0 for empty and 1..16 for the same semantic classes; OpenOcc v2 (the CVPR 2024 occupancy-and-flow
+challenge) has no ``others``, orders the 16 classes objects first and uses 16 for free space; 255 is ignored
+everywhere.
 Plain Python only (no numpy/torch), so the CLI can list classes without heavy imports.
 """
 
@@ -20,6 +22,9 @@ __all__ = [
     "OCC3D",
     "SURROUNDOCC_CLASSES",
     "SURROUNDOCC",
+    "OPENOCC_CLASSES",
+    "OPENOCC",
+    "OCC3D_TO_OPENOCC",
     "THING_CLASSES",
     "DETECTION_CLASSES",
     "NUSCENES_TO_OCC3D",
@@ -89,6 +94,17 @@ IGNORE_COLOR = (128, 128, 128)
 #: SurroundOcc class names in id order (0 = empty; 1..16 are Occ3D's 1..16).
 SURROUNDOCC_CLASSES: tuple[str, ...] = ("empty",) + OCC3D_CLASSES[1:17]
 
+#: OpenOcc v2 class names in id order (16 = free), as the challenge's ``ray_metrics.py`` lists them.
+OPENOCC_CLASSES: tuple[str, ...] = ("car", "truck", "trailer", "bus", "construction_vehicle", "bicycle", "motorcycle",
+                                    "pedestrian", "traffic_cone", "barrier", "driveable_surface", "other_flat",
+                                    "sidewalk", "terrain", "manmade", "vegetation", "free")  # fmt: skip
+
+#: OpenOcc v2 id of each Occ3D id (``OCC3D_TO_OPENOCC[occ3d_id]``), by class name; Occ3D's ``others`` has no
+#: OpenOcc v2 class and becomes free space, as in the public Occ3D-to-OpenOcc conversions.
+OCC3D_TO_OPENOCC: tuple[int, ...] = tuple(
+    OPENOCC_CLASSES.index(name) if name in OPENOCC_CLASSES else OPENOCC_CLASSES.index("free") for name in OCC3D_CLASSES
+)
+
 #: Occ3D classes whose objects are instances of their own in panoptic occupancy (SparseOcc's RayPQ and
 #: Panoptic-FlashOcc); every other class is stuff.
 THING_CLASSES: tuple[str, ...] = ("car", "truck", "construction_vehicle", "bus", "trailer", "motorcycle", "bicycle",
@@ -146,7 +162,9 @@ OCC3D = Taxonomy("occ3d", OCC3D_CLASSES, empty_index=17, colors=OCC3D_COLORS)
 SURROUNDOCC = Taxonomy(
     "surroundocc", SURROUNDOCC_CLASSES, empty_index=0, colors=((255, 255, 255),) + OCC3D_COLORS[1:17]
 )
-TAXONOMIES: dict[str, Taxonomy] = {t.name: t for t in (OCC3D, SURROUNDOCC)}
+OPENOCC = Taxonomy("openocc", OPENOCC_CLASSES, empty_index=16,
+                   colors=tuple(OCC3D_COLORS[OCC3D_CLASSES.index(name)] for name in OPENOCC_CLASSES))  # fmt: skip
+TAXONOMIES: dict[str, Taxonomy] = {t.name: t for t in (OCC3D, SURROUNDOCC, OPENOCC)}
 
 # nuScenes category -> Occ3D id, following the nuScenes-lidarseg 16-class merge. Categories that merge drops
 # (animals, debris, strollers, emergency vehicles, ...) become Occ3D's "others"; noise and the ego vehicle are ignored.

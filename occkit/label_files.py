@@ -1,4 +1,5 @@
-"""Writers of occupancy ground truth, byte for byte reproducible: Occ3D ``labels.npz``, SurroundOcc sparse ``.npy``.
+"""Writers of occupancy ground truth, byte for byte reproducible: Occ3D and OpenOcc v2 ``labels.npz``, SurroundOcc
+sparse ``.npy``.
 
 Shared by the synthetic world (:mod:`occkit.sim`) and ``occkit label`` (:mod:`occkit.labeling`); the readers, which
 check what they read, are in :mod:`occkit.data.labels`.
@@ -12,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["save_npz", "write_occ3d_labels", "write_surroundocc_labels"]
+__all__ = ["save_npz", "write_occ3d_labels", "write_openocc_labels", "write_surroundocc_labels"]
 
 
 def save_npz(path: str | Path, compressed: bool = True, **arrays: np.ndarray) -> None:
@@ -66,6 +67,16 @@ def write_occ3d_labels(
         arrays["instance_ids"] = np.array(list(tokens), dtype=np.int32)
         arrays["instance_tokens"] = np.array(list(tokens.values()), dtype="<U64")
     save_npz(path, **arrays)
+
+
+def write_openocc_labels(path: str | Path, semantics: np.ndarray, flow: np.ndarray) -> None:
+    """Write an OpenOcc v2 ``labels.npz`` as the CVPR 2024 challenge ships it: ``semantics`` uint8 ``(X, Y, Z)`` in
+    OpenOcc's ids (16 = free) and ``flow`` float32 ``(X, Y, Z, 2)`` ``vx, vy`` in m/s, no visibility mask."""
+    semantics = np.asarray(semantics, np.uint8)
+    flow = np.asarray(flow, np.float32)
+    if flow.shape != (*semantics.shape, 2):
+        raise ValueError(f"{path}: flow must have shape {(*semantics.shape, 2)}, got {flow.shape}")
+    save_npz(path, semantics=semantics, flow=flow)
 
 
 def write_surroundocc_labels(path: str | Path, rows: np.ndarray) -> None:

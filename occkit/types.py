@@ -56,7 +56,8 @@ class Sample:
     occ_aug: Tensor = field(default_factory=lambda: torch.eye(4))
     """``(4, 4)`` float32 ego frame -> augmented ego (occupancy) frame."""
     boxes: Tensor | None = None
-    """``(M, 9)`` float32 boxes in the augmented LiDAR frame: x, y, z (centre), l, w, h, yaw, vx, vy."""
+    """``(M, 9)`` float32 boxes in the augmented LiDAR frame (or the augmented ego frame, with
+    ``DatasetConfig.box_frame = "ego"``): x, y, z (centre), l, w, h, yaw, vx, vy."""
     box_labels: Tensor | None = None
     """``(M,)`` int64 indices into ``occkit.classes.DETECTION_CLASSES``."""
     voxel_semantics: Tensor | None = None
@@ -68,6 +69,8 @@ class Sample:
     voxel_flow: Tensor | None = None
     """``(X, Y, Z, 2)`` float32 occupancy flow ``vx, vy`` (m/s) in the augmented ego frame, on request
     (``DatasetConfig.flow``): each voxel's object velocity, zero on static and free voxels."""
+    voxel_instances: Tensor | None = None
+    """``(X, Y, Z)`` int32 panoptic instance ids (0: stuff or free), on request (``DatasetConfig.instances``)."""
     depth_maps: Tensor | None = None
     """``(N, h, w)`` float32 LiDAR depth per feature cell (0 = none), on request."""
     height_maps: Tensor | None = None
@@ -131,6 +134,8 @@ class Batch:
     """``(B, X, Y, Z)`` bool."""
     voxel_flow: Tensor | None = None
     """``(B, X, Y, Z, 2)`` float32 m/s."""
+    voxel_instances: Tensor | None = None
+    """``(B, X, Y, Z)`` int32 panoptic instance ids."""
     depth_maps: Tensor | None = None
     """``(B, N, h, w)``."""
     height_maps: Tensor | None = None
@@ -194,6 +199,8 @@ class OccPrediction:
     """``(B, X, Y, Z)`` uint8 class ids (17 = free for Occ3D)."""
     flow: Tensor | None = None
     """``(B, X, Y, Z, 2)`` float32 occupancy flow (m/s, ego frame) of models with a flow head."""
+    instances: Tensor | None = None
+    """``(B, X, Y, Z)`` int32 panoptic instance ids of models with an instance head (0: stuff or free)."""
     boxes: list[Tensor] | None = None
     """Optional ``B`` tensors ``(M_b, 9)`` in the LiDAR frame."""
     box_scores: list[Tensor] | None = None

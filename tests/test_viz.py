@@ -292,9 +292,9 @@ def test_cli_renders_ground_truth_predictions_and_page(data, tmp_path, capsys):
     predictions.mkdir()
     for token, path in _val_gts(data).items():
         with np.load(path) as labels:
-            semantics = labels["semantics"].copy()
+            semantics, instances = labels["semantics"].copy(), labels["instances"]
         semantics[semantics == ROAD] = 12  # the road becomes other_flat: a wrong class in every frame
-        write_prediction(predictions, token, semantics)
+        write_prediction(predictions, token, semantics, instances=instances)  # panoptic: each object its colour
     out = tmp_path / "viz"
     assert main(["viz", "--data", str(data), "--frames", "2", "--pred", str(predictions), "--out", str(out),
                  "--colors", "128"]) == 0  # fmt: skip
@@ -302,7 +302,8 @@ def test_cli_renders_ground_truth_predictions_and_page(data, tmp_path, capsys):
     assert "[viz] 2/2" in printed and str(out / "index.html") in printed
     index = json.loads((out / "index.json").read_text())
     assert [frame["token"] for frame in index["frames"]] == list(_val_gts(data))
-    expected = {"bev_gt", "voxels_gt", "compare", "voxels_pred", "cameras_lidar", "cameras_gt", "cameras_pred"}
+    expected = {"bev_gt", "voxels_gt", "compare", "voxels_pred", "cameras_lidar", "cameras_gt", "cameras_pred",
+                "instances_gt", "instances_pred"}  # the world's labels and these predictions carry instances
     page = (out / "index.md").read_text()
     for frame in index["frames"]:
         assert set(frame["files"]) == expected

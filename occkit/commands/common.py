@@ -17,7 +17,7 @@ from occkit.errors import UsageError
 
 #: The names of :data:`occkit.label_space.LABEL_SPACES`, spelled out so that ``occkit --help`` imports no torch
 #: (``tests/test_cli.py`` keeps them equal).
-LABEL_SPACE_NAMES = ("occ3d", "surroundocc")
+LABEL_SPACE_NAMES = ("occ3d", "surroundocc", "openocc")
 
 
 class FrameBar:

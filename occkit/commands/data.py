@@ -14,7 +14,7 @@ from occkit.arguments import (
     output_file,
     output_folder,
 )
-from occkit.commands.common import LABEL_SPACE_NAMES, FrameBar, write_json
+from occkit.commands.common import FrameBar, write_json
 
 
 # -------------------------------------------------------------------------------------------------- sim
@@ -38,6 +38,8 @@ def add_sim(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--version", default="v1.0-synth", help="table folder name, as nuScenes names it")
     parser.add_argument("--cameras", nargs="+", metavar="CAM", help="camera channels to render (default: all six)")
     parser.add_argument("--surroundocc", action="store_true", help="also write SurroundOcc ground truth")
+    parser.add_argument("--openocc", action="store_true",
+                        help="also write OpenOcc v2 ground truth (openocc_v2/: 17 classes with flow, no masks)")
     parser.add_argument("--workers", type=integer(1, 256), default=1, help="scenes simulated in parallel processes")
     parser.add_argument("--overwrite", action="store_true",
                         help="replace an existing dataset that occkit sim wrote (anything else is refused)")
@@ -53,6 +55,10 @@ def add_sim(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--json", type=Path, metavar="FILE", help="also write the summary as JSON to FILE")
 
 
+#: The label spaces ``occkit label`` writes (OpenOcc v2's flow needs tracked objects, which point clouds lack).
+LABELLED_SPACES = ("occ3d", "surroundocc")
+
+
 def run_sim(args: argparse.Namespace) -> int:
     from occkit.config import apply_overrides
     from occkit.sim.config import SimConfig
@@ -65,6 +71,7 @@ def run_sim(args: argparse.Namespace) -> int:
         "image_size": args.image_size,
         "version": args.version,
         "surroundocc": args.surroundocc,
+        "openocc": args.openocc,
     }
     if args.cameras:
         options["cameras"] = tuple(args.cameras)
@@ -112,7 +119,7 @@ def add_label(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--version", required=True, help="table folder, e.g. v1.0-mini, v1.0-trainval, v1.0-synth")
     parser.add_argument("--out", type=Path, required=True,
                         help="folder for the labels (train on them with --set data.label_root=OUT)")
-    parser.add_argument("--label-space", choices=LABEL_SPACE_NAMES, default="occ3d",
+    parser.add_argument("--label-space", choices=LABELLED_SPACES, default="occ3d",
                         help="occ3d: ego frame, 0.4 m, with camera and LiDAR masks (default); surroundocc: LiDAR "
                         "frame, 0.5 m, sparse rows")
     parser.add_argument("--densify", choices=("none", "poisson"), default="none",

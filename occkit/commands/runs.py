@@ -152,8 +152,9 @@ def add_eval_preds(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--out", type=Path, required=True, help="folder for metrics.json, metrics.md and the plot")
     parser.add_argument("--label-space", choices=LABEL_SPACE_NAMES, default="occ3d",
-                        help="the benchmark of ground truth and predictions (default occ3d); surroundocc needs "
-                             "--nuscenes ROOT --version V to pair its files with sample tokens")
+                        help="the benchmark of ground truth and predictions (default occ3d; openocc: OpenOcc v2, "
+                             "--gt its openocc_v2/ folder); surroundocc needs --nuscenes ROOT --version V to pair its "
+                             "files with sample tokens")
     parser.add_argument(
         "--mask",
         choices=("camera", "lidar", "none"),
@@ -187,7 +188,7 @@ def run_eval_preds(args: argparse.Namespace) -> int:
     input_folder(args.preds, "--preds")
     output_folder(args.out, "--out")
     if args.rayiou and not label_space(args.label_space).rayiou:
-        raise UsageError(f"--rayiou: RayIoU is not defined for {args.label_space} labels (only for Occ3D's)")
+        raise UsageError(f"--rayiou: RayIoU is not defined for {args.label_space} labels (only on Occ3D's grid)")
     if args.rayiou and args.ray_origins is None and args.nuscenes is None:
         raise UsageError("--rayiou needs --ray-origins FILE.npz or --nuscenes ROOT --version V for the ray origins")
     if args.label_space != "occ3d" and args.nuscenes is None:

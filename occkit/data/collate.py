@@ -23,6 +23,7 @@ _STACKED = (
     "mask_camera",
     "mask_lidar",
     "voxel_flow",
+    "voxel_instances",
     "depth_maps",
     "height_maps",
     "history_images",

@@ -106,15 +106,23 @@ class DatasetConfig:
     occupancy: bool = True
     """Load the occupancy labels (and, for Occ3D, the visibility masks)."""
     flow: bool = False
-    """Also load the occupancy flow (``Sample.voxel_flow``): the ``flow`` array of each Occ3D ``labels.npz``, as the
-    CVPR 2024 challenge's OpenOcc v2 files carry it (the synthetic world writes it). Needs ``occupancy``."""
+    """Also load the occupancy flow (``Sample.voxel_flow``): the ``flow`` array of each ``labels.npz``, as the CVPR
+    2024 challenge's OpenOcc v2 files carry it (the synthetic world writes it in its Occ3D files too). Needs
+    ``occupancy``."""
+    instances: bool = False
+    """Also load each voxel's panoptic instance id (``Sample.voxel_instances``): the ``instances`` array of the
+    synthetic world's Occ3D ``labels.npz``, which RayPQ scores against. Needs ``occupancy``."""
     label_space: str = "occ3d"
-    """Which benchmark's ground truth: ``occ3d`` or ``surroundocc`` (grid, frame, classes, files; see
+    """Which benchmark's ground truth: ``occ3d``, ``surroundocc`` or ``openocc`` (grid, frame, classes, files; see
     :mod:`occkit.label_space`). It must be the one the model's occupancy head predicts."""
     label_root: str | None = None
-    """Folder of the label files; None: the label space's folder under ``root`` (``gts``, ``surroundocc``)."""
+    """Folder of the label files; None: the label space's folder under ``root`` (``gts``, ``surroundocc``,
+    ``openocc_v2``)."""
     boxes: bool = True
     """Load the 3D boxes of the detection classes."""
+    box_frame: str = "lidar"
+    """The frame of the boxes: ``lidar`` (DAOcc's detection head, on the LiDAR BEV) or ``ego`` (BEVDet's boxes, as
+    Panoptic-FlashOcc's centre head on the ego-frame BEV reads them); augmented with the sample's BEV augmentation."""
     valid_boxes_only: bool = False
     """Keep only boxes with at least one LiDAR or radar point as targets, as mmdet3d's use_valid_flag (DAOcc,
     FlashOcc). It applies to the boxes of a sample and to :meth:`OccupancyDataset.sample_classes` (CBGS)."""
@@ -147,8 +155,11 @@ class DatasetConfig:
 
     def __post_init__(self) -> None:
         check_ranges("data", self, _DATASET_RANGES)
-        if self.flow and not self.occupancy:
-            raise ValueError("flow = true needs occupancy = true: the flow is read from the occupancy label files")
+        for key in ("flow", "instances"):
+            if getattr(self, key) and not self.occupancy:
+                raise ValueError(f"{key} = true needs occupancy = true: it is read from the occupancy label files")
+        if self.box_frame not in ("lidar", "ego"):
+            raise ValueError(f"box_frame must be lidar or ego, got {self.box_frame!r}")
         if self.depth_downsample and self.sweeps < 0:
             raise ValueError(f"depth_downsample = {self.depth_downsample} needs the LiDAR key frame, but sweeps = "
                              f"{self.sweeps} loads no LiDAR: set sweeps to 0 (the key frame) or more")
@@ -519,13 +530,15 @@ class OccupancyDataset(torch.utils.data.Dataset):
         return key
 
     def _load_boxes(self, record: FrameRecord, sample: Sample) -> None:
-        """``sample.boxes`` ``(M, 9)`` in the augmented LiDAR frame and ``sample.box_labels`` ``(M,)``: the boxes of
-        detection classes (with ``valid_boxes_only``, those with a LiDAR or radar point)."""
+        """``sample.boxes`` ``(M, 9)`` in the augmented LiDAR (or ego, ``box_frame``) frame and ``sample.box_labels``
+        ``(M,)``: the boxes of detection classes (with ``valid_boxes_only``, those with a LiDAR or radar point)."""
         names, valid = record.box_detection_names, record.box_valid
         only_valid = self.config.valid_boxes_only
         keep = [i for i, name in enumerate(names) if name is not None and (valid[i] or not only_valid)]
         boxes = torch.from_numpy(np.asarray(record.boxes_lidar, dtype=np.float32)[keep].reshape(-1, 9))
-        sample.boxes = augment_boxes(boxes, sample.bev_aug)
+        if self.config.box_frame == "ego":
+            boxes = torch.from_numpy(np.asarray(record.boxes_ego, dtype=np.float32)[keep].reshape(-1, 9))
+        sample.boxes = augment_boxes(boxes, sample.occ_aug if self.config.box_frame == "ego" else sample.bev_aug)
         sample.box_labels = torch.tensor(
             [DETECTION_CLASSES.index(record.box_detection_names[i]) for i in keep], dtype=torch.int64
         )
@@ -540,12 +553,16 @@ class OccupancyDataset(torch.utils.data.Dataset):
         """Labels (and masks) moved with ``label_aug``, the BEV augmentation in the labels' frame."""
         space = self.space
         try:
-            labels = read_labels(space, self.label_path(record), record.token, flow=self.config.flow)
+            labels = read_labels(space, self.label_path(record), record.token, flow=self.config.flow,
+                                 instances=self.config.instances)  # fmt: skip
         except LabelError as error:  # one error type for every file of a sample (its message names both)
             raise SampleError(str(error)) from error
         sample.voxel_semantics = torch.from_numpy(
             augment_occupancy(labels.semantics, label_aug, space.grid, space.ignore_index, empty=space.free_index)
         )
+        if labels.instances is not None:
+            sample.voxel_instances = torch.from_numpy(augment_occupancy(labels.instances, label_aug, space.grid, 0,
+                                                                        empty=0))  # fmt: skip
         if labels.flow is not None:
             sample.voxel_flow = torch.from_numpy(
                 augment_flow(labels.flow, labels.semantics, label_aug, space.grid, space.ignore_index, space.free_index)

@@ -1,5 +1,5 @@
-"""Readers of occupancy ground truth: Occ3D ``labels.npz`` and SurroundOcc sparse ``.npy`` (the writers are in
-:mod:`occkit.label_files`).
+"""Readers of occupancy ground truth: Occ3D and OpenOcc v2 ``labels.npz`` and SurroundOcc sparse ``.npy`` (the writers
+are in :mod:`occkit.label_files`).
 
 Both validate what they read and name the file and sample in every error, because label files are where
 silent mistakes (a wrong shape, a float mask, a SurroundOcc file read as Occ3D) cost a training run.
@@ -16,13 +16,13 @@ from pathlib import Path
 import numpy as np
 
 from occkit.archives import NpyHeader, NpzArchive, read_npy
-from occkit.classes import IGNORE_INDEX, OCC3D, SURROUNDOCC
+from occkit.classes import IGNORE_INDEX, OCC3D, OPENOCC, SURROUNDOCC, Taxonomy
 from occkit.data.names import path_under, safe_name
 from occkit.geometry.grid import OCC3D_GRID, SURROUNDOCC_GRID, VoxelGrid
 from occkit.label_space import LabelSpace
 
-__all__ = ["LabelError", "OccupancyLabels", "MAX_FLOW_SPEED", "read_occ3d_labels", "check_flow",
-           "read_surroundocc_labels", "label_file", "read_labels"]
+__all__ = ["LabelError", "OccupancyLabels", "MAX_FLOW_SPEED", "read_occ3d_labels", "read_openocc_labels", "check_flow",
+           "read_surroundocc_labels", "label_file", "has_instances", "read_labels"]
 
 #: The fastest occupancy flow (m/s) a label or prediction may hold: faster than anything on a road (the simulator's
 #: ego drives at most 40 m/s), and far from where sums of errors overflow float32.
@@ -42,12 +42,14 @@ class OccupancyLabels:
         mask_camera: ``(X, Y, Z)`` bool, or None when the format has no visibility masks.
         mask_lidar: ``(X, Y, Z)`` bool, or None.
         flow: ``(X, Y, Z, 2)`` float32 occupancy flow ``vx, vy`` (m/s, labels' frame), or None when not asked for.
+        instances: ``(X, Y, Z)`` int32 panoptic instance ids (0: stuff or free), or None when not asked for.
     """
 
     semantics: np.ndarray
     mask_camera: np.ndarray | None = None
     mask_lidar: np.ndarray | None = None
     flow: np.ndarray | None = None
+    instances: np.ndarray | None = None
 
 
 def _where(path: Path, token: str | None) -> str:
@@ -55,7 +57,8 @@ def _where(path: Path, token: str | None) -> str:
 
 
 def read_occ3d_labels(
-    path: str | Path, token: str | None = None, grid: VoxelGrid = OCC3D_GRID, flow: bool = False
+    path: str | Path, token: str | None = None, grid: VoxelGrid = OCC3D_GRID, flow: bool = False,
+    instances: bool = False,
 ) -> OccupancyLabels:
     """Read an Occ3D ``labels.npz`` (``semantics``, ``mask_lidar``, ``mask_camera``: uint8 ``(X, Y, Z)``).
 
@@ -63,16 +66,34 @@ def read_occ3d_labels(
     With ``flow``, the file must also carry the occupancy flow as OpenOcc v2's ``labels.npz`` does (key ``flow``,
     float ``(X, Y, Z, 2)``, m/s, at most :data:`MAX_FLOW_SPEED`); it is returned as float32. Each array's shape and
     dtype are checked from its header before its data is read (:class:`~occkit.archives.NpzArchive`), so a file
-    that declares a larger array costs no memory.
+    that declares a larger array costs no memory. With ``instances``, also the panoptic instance ids (key
+    ``instances``, integer ``(X, Y, Z)``, non-negative, 0 for stuff and free space), as ``occkit sim`` writes them.
     """
+    return _read_dense_labels(path, token, grid, OCC3D, masks=True, flow=flow, instances=instances)
+
+
+def read_openocc_labels(
+    path: str | Path, token: str | None = None, grid: VoxelGrid = OCC3D_GRID, flow: bool = False
+) -> OccupancyLabels:
+    """Read an OpenOcc v2 ``labels.npz``: ``semantics`` uint8 ``(X, Y, Z)`` in OpenOcc's ids (16 = free) and, with
+    ``flow``, the occupancy flow (key ``flow``, float ``(X, Y, Z, 2)``, m/s), checked as :func:`read_occ3d_labels`
+    checks them. The files carry no visibility mask (the masks are None)."""
+    return _read_dense_labels(path, token, grid, OPENOCC, masks=False, flow=flow)
+
+
+def _read_dense_labels(path: str | Path, token: str | None, grid: VoxelGrid, taxonomy: Taxonomy, masks: bool,
+                       flow: bool, instances: bool = False) -> OccupancyLabels:  # fmt: skip
+    """A dense ``labels.npz`` of ``taxonomy``'s ids, with Occ3D's visibility masks where ``masks``."""
     path = Path(path)
     where = _where(path, token)
-    wanted = ("semantics", "mask_lidar", "mask_camera") + (("flow",) if flow else ())
+    mask_keys = ("mask_lidar", "mask_camera") if masks else ()
+    wanted = ("semantics", *mask_keys) + (("flow",) if flow else ()) + (("instances",) if instances else ())
     try:
         with NpzArchive(path, "labels", where, LabelError) as archive:
             missing = [key for key in wanted if key not in archive]
             if missing:
-                hint = " (occkit sim writes label files with flow)" if missing == ["flow"] else ""
+                hint = f" (occkit sim writes label files with {missing[0]})" if missing in (["flow"], ["instances"]) \
+                    else ""  # fmt: skip
                 raise LabelError(
                     f"{where}: has no {', '.join(missing)} (keys: {', '.join(archive.keys) or 'none'}){hint}"
                 )
@@ -81,18 +102,25 @@ def read_occ3d_labels(
         raise LabelError(f"{where}: label file not found") from None
     except OSError as error:
         raise LabelError(f"{where}: cannot read labels ({error})") from error
-    for key in ("mask_lidar", "mask_camera"):
+    for key in mask_keys:
         if arrays[key].dtype == np.uint8 and arrays[key].max(initial=0) > 1:
             raise LabelError(f"{where}: {key} holds values {sorted(np.unique(arrays[key]).tolist())[:8]}, not 0/1")
     semantics = arrays["semantics"].astype(np.uint8, copy=False)
-    last = OCC3D.num_classes - 1
+    last = taxonomy.num_classes - 1
     bad = (semantics > last) & (semantics != IGNORE_INDEX)
     if bad.any():
-        raise LabelError(
-            f"{where}: semantics holds class ids {sorted(np.unique(semantics[bad]).tolist())} beyond 0..{last}"
-        )
-    return OccupancyLabels(semantics, arrays["mask_camera"].astype(bool), arrays["mask_lidar"].astype(bool),
-                           check_flow(arrays["flow"], where, LabelError) if flow else None)  # fmt: skip
+        raise LabelError(f"{where}: semantics holds class ids {sorted(np.unique(semantics[bad]).tolist())} beyond "
+                         f"0..{last} of {taxonomy.name}")  # fmt: skip
+    camera, lidar = (arrays["mask_camera"].astype(bool), arrays["mask_lidar"].astype(bool)) if masks else (None, None)
+    ids = None
+    if instances:
+        ids = arrays["instances"]
+        if ids.min(initial=0) < 0 or ids.max(initial=0) > np.iinfo(np.int32).max:
+            raise LabelError(f"{where}: instances holds ids from {int(ids.min())} to {int(ids.max())}; 0 is stuff and "
+                             "objects count from 1 (int32)")  # fmt: skip
+        ids = ids.astype(np.int32)
+    return OccupancyLabels(semantics, camera, lidar, check_flow(arrays["flow"], where, LabelError) if flow else None,
+                           ids)  # fmt: skip
 
 
 def _expect(key: str, where: str, grid: VoxelGrid) -> Callable[[NpyHeader], None]:
@@ -104,7 +132,9 @@ def _expect(key: str, where: str, grid: VoxelGrid) -> Callable[[NpyHeader], None
             raise LabelError(f"{where}: {key} has shape {header.shape} but expected {shape}")
         if key == "flow" and header.dtype.kind != "f":
             raise LabelError(f"{where}: flow has dtype {header.dtype} but expected a float type (m/s)")
-        if key != "flow" and header.dtype not in (np.uint8, np.bool_):
+        if key == "instances" and (header.dtype.kind not in "iu" or header.dtype.itemsize > 8):
+            raise LabelError(f"{where}: instances has dtype {header.dtype} but expected an integer type")
+        if key not in ("flow", "instances") and header.dtype not in (np.uint8, np.bool_):
             raise LabelError(f"{where}: {key} has dtype {header.dtype} but expected uint8")
 
     return check
@@ -176,13 +206,13 @@ def label_file(space: LabelSpace, folder: str | Path, scene: str, token: str, li
     """The ground-truth file of a key frame in ``folder`` (the dataset root's ``space.label_folder``, or a folder of
     its own), as the benchmark names it:
 
-    * Occ3D: ``<folder>/<scene>/<token>/labels.npz`` (the ``gts/`` tree);
+    * Occ3D and OpenOcc v2: ``<folder>/<scene>/<token>/labels.npz`` (the ``gts/`` and ``openocc_v2/`` trees);
     * SurroundOcc: ``<folder>/samples/<LiDAR file name>.npy``, e.g. ``samples/n008-...__LIDAR_TOP__...pcd.bin.npy``
       (its ``tools/generate_occupancy_nuscenes`` names each file after the key frame's LiDAR file).
 
     Names are checked (:func:`~occkit.data.names.safe_name`), so the path stays in ``folder``.
     """
-    if space.name == "surroundocc":
+    if space.layout == "lidar_files":
         name = safe_name(Path(lidar_path).name, f"sample {token}: LiDAR file name")
         return path_under(folder, f"samples/{name}.npy", str(folder))
     where = f"sample {token}"
@@ -190,12 +220,28 @@ def label_file(space: LabelSpace, folder: str | Path, scene: str, token: str, li
                       str(folder))  # fmt: skip
 
 
-def read_labels(space: LabelSpace, path: str | Path, token: str | None = None, flow: bool = False) -> OccupancyLabels:
+def has_instances(path: str | Path) -> bool:
+    """Whether a ``labels.npz`` carries panoptic instance ids (the synthetic world's do; Occ3D's do not)."""
+    try:
+        with NpzArchive(Path(path), "labels", str(path), LabelError) as archive:
+            return "instances" in archive
+    except (OSError, LabelError):
+        return False
+
+
+def read_labels(space: LabelSpace, path: str | Path, token: str | None = None, flow: bool = False,
+                instances: bool = False) -> OccupancyLabels:  # fmt: skip
     """Read one ground-truth file of ``space`` with its reader (``semantics`` in the space's class ids); ``flow``
-    reads the occupancy flow too, which only Occ3D-layout files carry."""
+    reads the occupancy flow too, which only the dense files carry (OpenOcc v2's, occkit's Occ3D files), and
+    ``instances`` the panoptic instance ids, which only occkit's Occ3D files carry."""
+    if instances and space.name != "occ3d":
+        raise LabelError(f"{path}: {space.name} label files carry no instance ids; panoptic labels are occ3d's")
     if space.name == "surroundocc":
         if flow:
-            raise LabelError(f"{path}: SurroundOcc label files carry no occupancy flow; flow needs occ3d labels")
+            raise LabelError(f"{path}: SurroundOcc label files carry no occupancy flow; flow needs occ3d or openocc "
+                             "labels")  # fmt: skip
         return read_surroundocc_labels(path, token, space.grid)
-    return read_occ3d_labels(path, token, space.grid, flow)
+    if space.name == "openocc":
+        return read_openocc_labels(path, token, space.grid, flow)
+    return read_occ3d_labels(path, token, space.grid, flow, instances)
 

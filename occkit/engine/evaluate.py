@@ -25,10 +25,12 @@ from occkit.data.loader import sample_loader
 from occkit.engine import distributed
 from occkit.engine.checkpoint import check_compatible, load_checkpoint
 from occkit.experiment import Experiment
+from occkit.label_space import LabelSpace
 from occkit.metrics.confusion import OccupancyMetric
 from occkit.metrics.evaluate import write_prediction
 from occkit.metrics.origins import records_ray_origins
 from occkit.metrics.rayiou import RAYIOU_THRESHOLDS, rayiou, rayiou_from_counts
+from occkit.metrics.raypq import RayPQCounts
 from occkit.models.temporal import StreamMemory
 from occkit.zoo import experiment_from_dict
 
@@ -132,26 +134,29 @@ def evaluate_model(
             (:func:`stream_memory`), and under the dataset's ``history_dropped`` corruption its memory forgets the
             frames the corruption drops.
         predictions: folder to also write ``<token>.npz`` predictions into.
-        ray_origins: token -> origins; when given, RayIoU is computed too (no mask, as SparseOcc); Occ3D only.
+        ray_origins: token -> origins; when given, RayIoU is computed too (no mask, as SparseOcc); Occ3D's grid only.
         progress: called with the number of samples after each batch (skipped ones included).
         mask: ``camera``, ``lidar``, None (every voxel), or ``default``: the label space's.
 
     Returns:
         ``miou``, ``iou``, ``per_class_iou``, ``label_space``, ``mask``, ``frames`` (scored), ``skipped`` (frames that
         failed to load under ``on_error="skip"``, not scored) and with origins ``rayiou``, ``rayiou@1/2/4``, and
-        for a model with a flow head ``mave`` and ``occ_score`` (the CVPR 2024 challenge's, on the same rays).
+        for a model with a flow head ``mave`` and ``occ_score`` (the CVPR 2024 challenge's, on the same rays), and for
+        a model with an instance head on labels with instance ids (``data.instances``) ``raypq``, ``raypq@1/2/4``.
     """
     space = dataset.space
     if ray_origins is not None and not space.rayiou:
-        raise ValueError(f"RayIoU is not defined for {space.name} labels (only for Occ3D's); leave it out")
+        raise ValueError(f"RayIoU is not defined for {space.name} labels (only on Occ3D's grid); leave it out")
     mask = space.check_mask(space.default_mask if mask == "default" else mask)
     was_training = model.training
     model.eval()
     device = next(model.parameters()).device
     metric = OccupancyMetric.for_space(space, mask)
-    ray_counts = _frame_counts(rayiou([], [], [])["counts"])  # zeros: a rank may hold no frame at all
+    # Zeros to start from: a rank may hold no frame at all.
+    ray_counts = _frame_counts(rayiou([], [], [], space=space)["counts"]) if ray_origins is not None else None
     velocity_errors = np.zeros((2, space.num_classes))  # summed AVE and true-positive rays per class (flow models)
-    flow_frames = frames = 0
+    panoptic = RayPQCounts()  # a model with an instance head, on labels with instance ids
+    flow_frames = panoptic_frames = frames = 0
     memory, batch_size = stream_memory(model, batch_size)
     loader = split_loader(dataset, batch_size, workers, context, by_scene=memory is not None)
     share = len(loader.sampler)
@@ -163,6 +168,8 @@ def evaluate_model(
             # Flow is scored where the data has it (data.flow); without it, the model is scored as any other.
             scored_flow = prediction.flow is not None and batch.voxel_flow is not None
             flows = prediction.flow.float().cpu().numpy() if scored_flow else None
+            scored_instances = prediction.instances is not None and batch.voxel_instances is not None
+            instances = prediction.instances.cpu().numpy() if prediction.instances is not None else None
             if before is not None and dataset.corruption.forget(batch.tokens[0]):
                 memory.load_state_dict(before)  # the frame is lost to the frames after it (history_dropped)
             labels = batch.voxel_semantics.numpy()
@@ -172,14 +179,20 @@ def evaluate_model(
             for i, token in enumerate(batch.tokens):
                 flow = None if flows is None else flows[i]
                 if predictions is not None:
-                    write_prediction(predictions, token, semantics[i], flow)
+                    write_prediction(predictions, token, semantics[i], flow,
+                                     None if instances is None else instances[i])  # fmt: skip
                 if ray_origins is not None:
                     flows_of = {} if flow is None else {"gt_flows": [batch.voxel_flow[i].numpy()], "pred_flows": [flow]}
-                    counts = rayiou([labels[i]], [semantics[i]], [ray_origins[token]], **flows_of)["counts"]
+                    counts = rayiou([labels[i]], [semantics[i]], [ray_origins[token]], **flows_of,
+                                    space=space)["counts"]  # fmt: skip
                     ray_counts += _frame_counts(counts)
                     if flow is not None:
                         velocity_errors += [counts["ave_sum"], counts["ave_count"]]
                         flow_frames += 1
+                    if scored_instances:
+                        panoptic.add_frame(labels[i], semantics[i], batch.voxel_instances[i].numpy(), instances[i],
+                                           ray_origins[token])  # fmt: skip
+                        panoptic_frames += 1
             frames += len(batch)
         if progress is not None:
             progress(min(batch_size, share - index * batch_size))
@@ -193,7 +206,13 @@ def evaluate_model(
     if ray_origins is not None:
         velocity_errors = distributed.all_reduce_sum(velocity_errors)
         flow_frames = int(distributed.all_reduce_sum(np.array([flow_frames]))[0])
-        result.update(_rayiou_summary(distributed.all_reduce_sum(ray_counts), velocity_errors if flow_frames else None))
+        result.update(_rayiou_summary(distributed.all_reduce_sum(ray_counts), space,
+                                      velocity_errors if flow_frames else None))  # fmt: skip
+        if int(distributed.all_reduce_sum(np.array([panoptic_frames]))[0]):
+            for name in ("tp", "iou", "fp", "fn"):
+                setattr(panoptic, name, distributed.all_reduce_sum(getattr(panoptic, name)))
+            scores = panoptic.compute()
+            result.update({key: scores[key] for key in ("raypq", "raypq@1", "raypq@2", "raypq@4")})
     return result
 
 
@@ -202,12 +221,13 @@ def _frame_counts(counts: dict) -> np.ndarray:
     return np.concatenate(parts).astype(np.int64)
 
 
-def _rayiou_summary(counts: np.ndarray, velocity_errors: np.ndarray | None = None) -> dict[str, float]:
+def _rayiou_summary(counts: np.ndarray, space: LabelSpace, velocity_errors: np.ndarray | None = None
+                    ) -> dict[str, float]:  # fmt: skip
     """RayIoU from the summed ray counts and, with the summed ``(2, K)`` velocity errors and true-positive rays of a
     flow model, mAVE and OccScore."""
     parts = np.split(counts, 2 + len(RAYIOU_THRESHOLDS))
     flow = () if velocity_errors is None else (velocity_errors[0], velocity_errors[1].round().astype(np.int64))
-    summary = rayiou_from_counts(parts[0], parts[1], np.stack(parts[2:]), *flow)
+    summary = rayiou_from_counts(parts[0], parts[1], np.stack(parts[2:]), *flow, space=space)
     keys = ("rayiou", "rayiou@1", "rayiou@2", "rayiou@4") + (("mave", "occ_score") if flow else ())
     return {key: float(summary[key]) for key in keys}
 

@@ -64,7 +64,9 @@ class LabelConfig:
     """Settings of ``densify="poisson"``."""
 
     def __post_init__(self) -> None:
-        label_space(self.label_space)
+        if label_space(self.label_space).name not in ("occ3d", "surroundocc"):
+            raise ValueError(f"occkit label writes occ3d or surroundocc labels, not {self.label_space}: OpenOcc v2's "
+                             "flow needs tracked objects, which point clouds alone do not give")  # fmt: skip
         if self.densify not in DENSIFY_METHODS:
             raise ValueError(f"densify must be one of {', '.join(DENSIFY_METHODS)}, got {self.densify!r}")
         if self.mask_window < 0:

@@ -85,7 +85,7 @@ def find_gt_labels(gt_root: str | Path, space: LabelSpace | str = OCC3D_SPACE,
             raise ValueError(f"{gt_root}: no {space.name} ground truth for {len(missing)} of {len(paths)} frames: "
                              f"{_token_list(missing)} (e.g. {paths[missing[0]]})")  # fmt: skip
         return dict(sorted(paths.items()))
-    if space.name != "occ3d":
+    if space.layout != "token_tree":
         raise ValueError(f"{space.name} ground truth is named after each frame's LiDAR file: give the dataset's "
                          "tables (--nuscenes ROOT --version V) to pair it with sample tokens")  # fmt: skip
     found: dict[str, Path] = {}
@@ -95,7 +95,8 @@ def find_gt_labels(gt_root: str | Path, space: LabelSpace | str = OCC3D_SPACE,
             raise ValueError(f"token {token} has labels in two scenes: {found[token]} and {path}")
         found[token] = path
     if not found:
-        raise ValueError(f"{gt_root} holds no <scene>/<token>/labels.npz (is it the Occ3D gts/ folder?)")
+        raise ValueError(f"{gt_root} holds no <scene>/<token>/labels.npz (is it the {space.title} "
+                         f"{space.label_folder}/ folder?)")  # fmt: skip
     return dict(sorted(found.items()))
 
 
@@ -128,6 +129,15 @@ def read_prediction(path: str | Path, space: LabelSpace | str = OCC3D_SPACE) -> 
             the message names the file.
     """
     return _read_prediction(Path(path), label_space(space), flow=False).grid
+
+
+def read_prediction_instances(path: str | Path, space: LabelSpace | str = OCC3D_SPACE) -> np.ndarray | None:
+    """The panoptic ``instances`` of a prediction file as integer ``(X, Y, Z)`` (0: stuff), or None when it has none.
+
+    Raises:
+        ValueError: unreadable file, or instances of the wrong shape or dtype.
+    """
+    return _read_prediction(Path(path), label_space(space), flow=True).instances
 
 
 def read_prediction_flow(path: str | Path, space: LabelSpace | str = OCC3D_SPACE) -> np.ndarray | None:
@@ -268,7 +278,7 @@ def _score_frame(
         return metric.confusion, None, prediction.keys
     flows = {"gt_flows": [labels.flow], "pred_flows": [pred_flow]} if scored_flow else {}
     try:
-        counts = rayiou([labels.semantics], [pred], [origins], **flows)["counts"]
+        counts = rayiou([labels.semantics], [pred], [origins], **flows, space=space)["counts"]
     except ValueError as error:
         raise ValueError(f"sample {token}: RayIoU failed ({error})") from error
     if prediction.instances is not None:  # panoptic: RayPQ on the same rays
@@ -349,7 +359,7 @@ def evaluate_predictions(
     if workers < 1:
         raise ValueError(f"workers must be at least 1, got {workers}")
     if compute_rayiou and not space.rayiou:
-        raise ValueError(f"RayIoU is not defined for {space.name} labels (only for Occ3D's): leave out --rayiou")
+        raise ValueError(f"RayIoU is not defined for {space.name} labels (only on Occ3D's grid): leave out --rayiou")
     if compute_rayiou and ray_origins is None:
         raise ValueError("RayIoU needs ray origins (--ray-origins FILE.npz mapping token -> (T, 3) origins)")
     gt_paths = find_gt_labels(gt_root, space, frames)
@@ -425,7 +435,7 @@ def evaluate_predictions(
             pq = panoptic.compute()
             result.update({key: _finite_or_none(pq[key]) for key in ("raypq", "raypq@1", "raypq@2", "raypq@4")})
         flow = (ave_sum, ave_count) if flow_frames else ()
-        summary = rayiou_from_counts(ray_gt, ray_pred, ray_tp, *flow)
+        summary = rayiou_from_counts(ray_gt, ray_pred, ray_tp, *flow, space=space)
         keys = ("rayiou", "rayiou@1", "rayiou@2", "rayiou@4") + (("mave", "occ_score") if flow else ())
         result.update({key: _finite_or_none(summary[key]) for key in keys})
         if flow:
@@ -471,11 +481,11 @@ def evaluate_prediction_folder(
     space = label_space(space) if isinstance(space, str) else space
     gt_root = Path(gt_root)
     if rayiou and not space.rayiou:
-        raise ValueError(f"RayIoU is not defined for {space.name} labels (only for Occ3D's)")
+        raise ValueError(f"RayIoU is not defined for {space.name} labels (only on Occ3D's grid)")
     if mask != "default":
         space.check_mask(_MASKS.get(mask, mask))
     records = None if nuscenes is None else build_index(nuscenes, version, max_sweeps=0)
-    if records is None and space.name != "occ3d":
+    if records is None and space.layout != "token_tree":
         raise ValueError(f"{space.name} labels: their files are named after each frame's LiDAR file; give the "
                          "dataset's nuScenes tables (root and version) to pair them with sample tokens")  # fmt: skip
     if rayiou and ray_origins is None:
@@ -483,7 +493,7 @@ def evaluate_prediction_folder(
             raise ValueError("RayIoU needs ray origins: a token -> origins file, or the dataset's nuScenes tables")
         ray_origins = records_ray_origins(records)
     frames = None if records is None else {r.token: (r.scene, r.lidar_path) for r in records}
-    if frames is not None and space.name == "occ3d":  # an Occ3D tree may cover a subset of the tables' frames
+    if frames is not None and space.layout == "token_tree":  # a tree may cover a subset of the tables' frames
         frames = {token: frame for token, frame in frames.items() if (gt_root / frame[0] / token).is_dir()}
     total, done = len(find_gt_labels(gt_root, space, frames)), 0
 
@@ -520,9 +530,8 @@ def markdown_table(result: Mapping) -> str:
     header = ["mIoU", "IoU", *classes]
     values = [_percent(result["miou"]), _percent(result["iou"])]
     values += [_percent(result["per_class_iou"][name]) for name in classes]
-    title = {"occ3d": "Occ3D-nuScenes", "surroundocc": "SurroundOcc-nuScenes"}[space.name]
     lines = [
-        f"{title}, {result['frames']} frames, mask: {result['mask'] or 'none'}, "
+        f"{space.title}, {result['frames']} frames, mask: {result['mask'] or 'none'}, "
         f"missing predictions: {result['missing_predictions']}",
         "",
         "| " + " | ".join(header) + " |",

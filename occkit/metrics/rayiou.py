@@ -1,5 +1,7 @@
 """RayIoU of the SparseOcc protocol on Occ3D-nuScenes grids, value for value, and the occupancy flow scores of the
-CVPR 2024 occupancy-and-flow challenge on the same rays: mAVE and OccScore.
+CVPR 2024 occupancy-and-flow challenge on the same rays: mAVE and OccScore. Both read Occ3D's and OpenOcc v2's
+labels (the same grid; the free id, the classes averaged and the moving classes' ids come from the label space, as
+the reference's ``occ_class_names`` argument gives them).
 
 Rays leave the LiDAR positions of a frame's scene (``origins``, ego metres) in 39 pitches x 360 azimuths and stop at
 the first occupied voxel; a ray scores for a class when prediction and ground truth stop on that class at depths
@@ -26,7 +28,7 @@ from collections.abc import Sequence
 import numpy as np
 from numba import njit, prange
 
-from occkit.label_space import OCC3D_SPACE
+from occkit.label_space import OCC3D_SPACE, LabelSpace
 
 __all__ = ["RAYIOU_THRESHOLDS", "FLOW_CLASSES", "AVE_THRESHOLD", "ray_directions", "cast_rays_exact", "rayiou",
            "rayiou_from_counts", "occ_score"]
@@ -34,23 +36,29 @@ __all__ = ["RAYIOU_THRESHOLDS", "FLOW_CLASSES", "AVE_THRESHOLD", "ray_directions
 #: Depth thresholds in metres of RayIoU@1, @2 and @4.
 RAYIOU_THRESHOLDS: tuple[int, ...] = (1, 2, 4)
 
-#: The moving classes whose velocity error mAVE averages (the challenge's eight), by Occ3D name.
+#: The moving classes whose velocity error mAVE averages (the challenge's eight), by name.
 FLOW_CLASSES: tuple[str, ...] = ("car", "truck", "trailer", "bus", "construction_vehicle", "bicycle", "motorcycle",
                                  "pedestrian")  # fmt: skip
 
 #: Depth threshold (m) of the true-positive rays whose velocity errors AVE averages.
 AVE_THRESHOLD = 2
 
-# RayIoU is defined on Occ3D's ego-frame grid with its free class (SparseOcc's protocol).
+# RayIoU is defined on Occ3D's ego-frame grid with a free class (SparseOcc's protocol).
 _GRID_SHAPE = OCC3D_SPACE.grid.shape
 _LOWER = OCC3D_SPACE.grid.lower
 # The reference divides by a float32 voxel size promoted to double; 0.4 in double flips some labels.
 _VOXEL = float(np.float32(OCC3D_SPACE.grid.voxel_size[0]))
-_FREE = OCC3D_SPACE.free_index
-_NUM_CLASSES = len(OCC3D_SPACE.semantic_ids)
-_FLOW_IDS = tuple(OCC3D_SPACE.taxonomy.index(name) for name in FLOW_CLASSES)
 # Loop bound of the reference kernel (MAX_STEP): a ray that takes more steps stops where it is.
 _MAX_STEP = 1000
+
+
+@functools.cache
+def _protocol(space: LabelSpace) -> tuple[int, int, tuple[int, ...]]:
+    """``(free id, classes averaged, ids of FLOW_CLASSES)`` of a label space RayIoU is defined for; ValueError for
+    another (SparseOcc's rays need Occ3D's ego-frame grid and a free class that ends last)."""
+    if not space.rayiou or space.grid.shape != _GRID_SHAPE or space.free_index != space.num_classes - 1:
+        raise ValueError(f"RayIoU is not defined for {space.name} labels (only on Occ3D's grid with a free class)")
+    return space.free_index, space.num_classes - 1, tuple(space.taxonomy.index(name) for name in FLOW_CLASSES)
 
 
 @functools.lru_cache(maxsize=1)
@@ -81,11 +89,11 @@ def ray_directions() -> np.ndarray:
 
 
 @njit(cache=True)
-def _cast_one(labels, xo, yo, zo, xe, ye, ze):
+def _cast_one(labels, free, xo, yo, zo, xe, ye, ze):
     """Walk one ray through ``labels``; returns ``(distance in voxels, label, x, y, z)`` of the voxel it stops in.
 
     ``(xo, yo, zo)`` and ``(xe, ye, ze)`` are the float32 origin and end point in voxel coordinates, widened to
-    double. Stops at the exit of the first occupied voxel (label other than free), else at the exit of the last
+    double. Stops at the exit of the first occupied voxel (label other than ``free``), else at the exit of the last
     voxel inside the grid; a ray that never enters the grid gives ``(-1, labels[0, 0, 0])`` at voxel ``(0, 0, 0)``
     like the reference.
     """
@@ -146,7 +154,7 @@ def _cast_one(labels, xo, yo, zo, xe, ye, ze):
         if inside:
             was_inside = True
             label = labels[cx, cy, cz]
-            if label != _FREE:
+            if label != free:
                 return d, label, cx, cy, cz
             last_d = d
             last_label = label
@@ -157,11 +165,11 @@ def _cast_one(labels, xo, yo, zo, xe, ye, ze):
 
 
 @njit(cache=True, parallel=True)
-def _cast_kernel(labels, origins_vox, ends_vox, out_label, out_dist, out_voxel):
+def _cast_kernel(labels, free, origins_vox, ends_vox, out_label, out_dist, out_voxel):
     """Cast every ray of every origin.
 
     Args:
-        labels: ``(X, Y, Z)`` uint8 grid.
+        labels: ``(X, Y, Z)`` uint8 grid; ``free``: its free id.
         origins_vox: ``(T, 3)`` float32 origins in voxel coordinates.
         ends_vox: ``(T, R, 3)`` float32 ray end points (origin + unit direction) in voxel coordinates.
         out_label: ``(T * R,)`` uint8, receives the labels.
@@ -175,6 +183,7 @@ def _cast_kernel(labels, origins_vox, ends_vox, out_label, out_dist, out_voxel):
         r = i - t * n_rays
         d, label, x, y, z = _cast_one(
             labels,
+            free,
             np.float64(origins_vox[t, 0]),
             np.float64(origins_vox[t, 1]),
             np.float64(origins_vox[t, 2]),
@@ -216,14 +225,16 @@ def _to_voxels(points: np.ndarray) -> np.ndarray:
 
 
 def cast_rays_exact(
-    labels: np.ndarray, origins: np.ndarray, voxels: bool = False
+    labels: np.ndarray, origins: np.ndarray, voxels: bool = False, space: LabelSpace = OCC3D_SPACE
 ) -> tuple[np.ndarray, np.ndarray] | tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Cast the protocol's rays from each origin through one grid, bit for bit as SparseOcc's caster.
 
     Args:
-        labels: ``(200, 200, 16)`` uint8 Occ3D labels in (x, y, z) order; 17 is free, every other value occupied.
+        labels: ``(200, 200, 16)`` uint8 labels in (x, y, z) order; the space's free id (Occ3D 17, OpenOcc 16) is
+            free, every other value occupied.
         origins: ``(T, 3)`` ray origins in ego metres (converted to float64).
         voxels: also return the voxel each ray stops in (the reference's ``coord_index``, where flow is read).
+        space: the labels' label space (Occ3D or OpenOcc v2).
 
     Returns:
         ``(label, distance)``: ``(T * 14040,)`` uint8 label of the voxel each ray stops in and ``(T * 14040,)``
@@ -231,8 +242,10 @@ def cast_rays_exact(
         ``(T * 14040, 3)`` int64 index of that voxel (``(0, 0, 0)`` for a ray that never enters the grid).
 
     Raises:
-        ValueError: on a grid of another shape or dtype, or origins not ``(T, 3)`` finite numbers.
+        ValueError: on a grid of another shape or dtype, origins not ``(T, 3)`` finite numbers, or a label space
+            without RayIoU.
     """
+    free = _protocol(space)[0]
     labels = _check_labels(labels, "labels")
     origins = _check_origins(origins)
     dirs = _directions().astype(np.float64)
@@ -242,7 +255,7 @@ def cast_rays_exact(
     out_label = np.empty(n, dtype=np.uint8)
     out_dist = np.empty(n, dtype=np.float32)
     out_voxel = np.empty((n, 3), dtype=np.int16)
-    _cast_kernel(labels, _to_voxels(origins), ends, out_label, out_dist, out_voxel)
+    _cast_kernel(labels, free, _to_voxels(origins), ends, out_label, out_dist, out_voxel)
     if voxels:
         return out_label, out_dist * np.float32(_VOXEL), out_voxel.astype(np.int64)
     return out_label, out_dist * np.float32(_VOXEL)
@@ -254,6 +267,7 @@ def rayiou(
     origins: Sequence[np.ndarray] | np.ndarray,
     gt_flows: Sequence[np.ndarray] | np.ndarray | None = None,
     pred_flows: Sequence[np.ndarray] | np.ndarray | None = None,
+    space: LabelSpace = OCC3D_SPACE,
 ) -> dict:
     """RayIoU over a set of frames, as SparseOcc's ``main_rayiou``; with flows, also mAVE and OccScore as the CVPR
     2024 challenge's ``ray_metrics.main``.
@@ -269,14 +283,15 @@ def rayiou(
         preds: predicted grids, same layout.
         origins: ``N`` arrays of ``(T_i, 3)`` ray origins in each frame's ego metres (or one ``(N, T, 3)`` array).
         gt_flows, pred_flows: ``N`` ``(200, 200, 16, 2)`` float occupancy flows (m/s), both or neither.
+        space: the label space of the grids (Occ3D: 17 classes averaged, 17 = free; OpenOcc v2: 16, 16 = free).
 
     Returns:
-        ``rayiou`` (nanmean over the 3 thresholds x 17 classes), ``rayiou@1``, ``rayiou@2``, ``rayiou@4`` (nanmean
-        over the 17 classes), ``per_class`` ``{threshold: list of 17 floats}`` and ``counts``
-        ``{"gt": list of 18, "pred": list of 18, "tp": {threshold: list of 18}}`` with index 17 = free; thresholds
-        are the ints of :data:`RAYIOU_THRESHOLDS`. With flows, also ``mave``, ``occ_score``, ``ave_per_class`` (17
-        floats, NaN for classes that do not move or have no true positive) and in ``counts`` ``ave_sum`` (18 floats)
-        and ``ave_count`` (18 ints).
+        ``rayiou`` (nanmean over the 3 thresholds x the ``K - 1`` classes but free), ``rayiou@1``, ``rayiou@2``,
+        ``rayiou@4`` (nanmean over the classes), ``per_class`` ``{threshold: list of K - 1 floats}`` and ``counts``
+        ``{"gt": list of K, "pred": list of K, "tp": {threshold: list of K}}`` with the last index free; thresholds
+        are the ints of :data:`RAYIOU_THRESHOLDS`. With flows, also ``mave``, ``occ_score``, ``ave_per_class``
+        (``K - 1`` floats, NaN for classes that do not move or have no true positive) and in ``counts`` ``ave_sum``
+        (``K`` floats) and ``ave_count`` (``K`` ints).
 
     Raises:
         ValueError: on mismatched frame counts or a grid, flow or origin array of the wrong shape or dtype.
@@ -286,18 +301,19 @@ def rayiou(
     with_flow = gt_flows is not None or pred_flows is not None
     if with_flow and (gt_flows is None or pred_flows is None or not len(gt_flows) == len(pred_flows) == len(gts)):
         raise ValueError("gt_flows and pred_flows must both be given, one per frame")
+    free, _, flow_ids = _protocol(space)
     n_bins = 256
     gt_cnt = np.zeros(n_bins, dtype=np.int64)
     pred_cnt = np.zeros(n_bins, dtype=np.int64)
     tp_cnt = np.zeros((len(RAYIOU_THRESHOLDS), n_bins), dtype=np.int64)
-    ave_sum = np.zeros(_FREE + 1, dtype=np.float64)
-    ave_count = np.zeros(_FREE + 1, dtype=np.int64)
+    ave_sum = np.zeros(free + 1, dtype=np.float64)
+    ave_count = np.zeros(free + 1, dtype=np.int64)
     for i, (gt, pred, org) in enumerate(zip(gts, preds, origins, strict=True)):
         gt = _check_labels(gt, "gt")
         pred = _check_labels(pred, "pred")
-        gt_label, gt_dist, gt_voxel = cast_rays_exact(gt, org, voxels=True)
-        pred_label, pred_dist, pred_voxel = cast_rays_exact(pred, org, voxels=True)
-        valid = gt_label != _FREE
+        gt_label, gt_dist, gt_voxel = cast_rays_exact(gt, org, voxels=True, space=space)
+        pred_label, pred_dist, pred_voxel = cast_rays_exact(pred, org, voxels=True, space=space)
+        valid = gt_label != free
         gt_label, gt_dist = gt_label[valid], gt_dist[valid]
         pred_label, pred_dist = pred_label[valid], pred_dist[valid]
         gt_cnt += np.bincount(gt_label, minlength=n_bins)
@@ -310,7 +326,7 @@ def rayiou(
             gt_flow = _ray_flow(gt_flows[i], gt_voxel[valid], "gt_flows")
             pred_flow = _ray_flow(pred_flows[i], pred_voxel[valid], "pred_flows")
             tp = same & (err < AVE_THRESHOLD)
-            for c in _FLOW_IDS:
+            for c in flow_ids:
                 rays = tp & (gt_label == c)
                 if rays.any():
                     # float32 norms summed in float32 per frame and class, then added in float64, as the reference.
@@ -318,8 +334,8 @@ def rayiou(
                     ave_sum[c] += np.sum(errors)
                     ave_count[c] += errors.shape[0]
 
-    counts = (gt_cnt[: _FREE + 1], pred_cnt[: _FREE + 1], tp_cnt[:, : _FREE + 1])
-    return rayiou_from_counts(*counts, *((ave_sum, ave_count) if with_flow else ()))
+    counts = (gt_cnt[: free + 1], pred_cnt[: free + 1], tp_cnt[:, : free + 1])
+    return rayiou_from_counts(*counts, *((ave_sum, ave_count) if with_flow else (None, None)), space=space)
 
 
 def _ray_flow(flow: np.ndarray, voxel: np.ndarray, name: str) -> np.ndarray:
@@ -336,21 +352,25 @@ def rayiou_from_counts(
     tp_cnt: np.ndarray,
     ave_sum: np.ndarray | None = None,
     ave_count: np.ndarray | None = None,
+    space: LabelSpace = OCC3D_SPACE,
 ) -> dict:
     """RayIoU (and with velocity errors mAVE and OccScore) from ray counts summed over frames (the metrics are
     ratios of sums, so frames can be counted apart).
 
     Args:
-        gt_cnt, pred_cnt: ``(18,)`` int64 valid rays per GT / predicted class (index 17 = free).
-        tp_cnt: ``(3, 18)`` int64 true positives per threshold of :data:`RAYIOU_THRESHOLDS`.
-        ave_sum, ave_count: ``(18,)`` summed velocity errors (m/s) and their true-positive rays per class at
+        gt_cnt, pred_cnt: ``(K,)`` int64 valid rays per GT / predicted class of the ``K`` classes of ``space``
+            (the last = free).
+        tp_cnt: ``(3, K)`` int64 true positives per threshold of :data:`RAYIOU_THRESHOLDS`.
+        ave_sum, ave_count: ``(K,)`` summed velocity errors (m/s) and their true-positive rays per class at
             :data:`AVE_THRESHOLD`; None: no flow.
+        space: the label space counted (Occ3D or OpenOcc v2).
 
     Returns:
         The dict of :func:`rayiou`.
     """
+    _, num_classes, flow_ids = _protocol(space)
     with np.errstate(invalid="ignore", divide="ignore"):
-        iou = (tp_cnt / (gt_cnt + pred_cnt - tp_cnt).astype(np.float64))[:, :_NUM_CLASSES]
+        iou = (tp_cnt / (gt_cnt + pred_cnt - tp_cnt).astype(np.float64))[:, :num_classes]
     keys = list(RAYIOU_THRESHOLDS)
     result: dict = {"rayiou": _nanmean(iou)}
     for j, key in enumerate(keys):
@@ -362,8 +382,8 @@ def rayiou_from_counts(
         "tp": {key: np.asarray(tp_cnt[j]).tolist() for j, key in enumerate(keys)},
     }
     if ave_sum is not None:
-        ave = np.full(_NUM_CLASSES, np.nan)
-        for c in _FLOW_IDS:
+        ave = np.full(num_classes, np.nan)
+        for c in flow_ids:
             if ave_count[c]:
                 ave[c] = ave_sum[c] / ave_count[c]
         result["mave"] = _nanmean(ave)

@@ -112,7 +112,10 @@ class OccupancyModel(nn.Module, metaclass=abc.ABCMeta):
     def predict(self, batch: Batch, *, memory: StreamMemory | None = None) -> OccPrediction:
         """Class ids ``(B, X, Y, Z)`` uint8, and the flow of a model with a flow head (a stream step with a
         ``memory``)."""
-        output = self.forward(batch, memory=memory)
+        return self.prediction(self.forward(batch, memory=memory))
+
+    def prediction(self, output: ModelOutput) -> OccPrediction:
+        """What :meth:`predict` makes of a forward's output: the class ids, and the flow of a flow head."""
         prediction = occupancy_prediction(output.occupancy)
         prediction.flow = output.flow
         return prediction

@@ -7,6 +7,11 @@ Data flow (M0, batch ``B``, 6 cameras at 256 x 704)::
         -> BEV encoder (BasicBlocks [2, 2, 2], strides 2, 2, 2; FPN_LSS back to 200 x 200) -> (B, 128, 200, 200)
         -> channel-to-height head -> (B, 18, 200, 200, 16)
 
+Panoptic-FlashOcc (``instances``) adds an instance-centre head on the same 128-channel BEV: a CenterPoint heatmap of
+the 10 detection classes with the centre's sub-cell offset and height (trained on the ego-frame boxes, the other
+regression branches at zero weight), whose peaks become instance centres; each voxel of a thing class joins the
+nearest centre of its class (:mod:`occkit.models.heads.panoptic`).
+
 M1 uses 88 depth bins (0.5 m) and 256 BEV channels. Loss: cross-entropy over the camera-visible voxels, no depth
 supervision. The BEV is ``(B, C, X, Y)`` in the augmented ego frame (BEVDet's ``(B, C, Y, X)`` is converted in
 ``occkit.models.view_transform.lss``).
@@ -23,13 +28,15 @@ from occkit.geometry.grid import VoxelGrid
 from occkit.losses import depth_bce
 from occkit.models.base import Architecture, OccupancyModel, camera_images
 from occkit.models.bev_encoder import BevEncoder, BevEncoderConfig
+from occkit.models.heads.center import CenterHead, CenterHeadConfig
 from occkit.models.heads.depth import lidar_target
 from occkit.models.heads.flow import FlowHead, FlowHeadConfig, check_motion_input
 from occkit.models.heads.occupancy import OccupancyHead, OccupancyHeadConfig
+from occkit.models.heads.panoptic import assign_instances
 from occkit.models.image_encoder import ImageEncoder, ImageEncoderConfig
 from occkit.models.temporal import HISTORY_INPUTS, TemporalConfig, TemporalFusion
 from occkit.models.view_transform.lss import LSSConfig, LSSViewTransform, PoolingPlan
-from occkit.types import Batch, ModelOutput
+from occkit.types import Batch, ModelOutput, OccPrediction
 
 __all__ = ["FlashOccConfig", "FlashOcc", "ARCHITECTURE"]
 
@@ -63,6 +70,10 @@ class FlashOccConfig:
     temporal: TemporalConfig | None = None
     """BEV history (BEVDet4D's, FlashOcc's 4D models): the LSS BEV fused with earlier frames' before the BEV
     encoder, whose ``in_channels`` is then ``temporal.out_channels(context)``; None: a single frame."""
+    instances: CenterHeadConfig | None = None
+    """Panoptic-FlashOcc's instance-centre head on the BEV encoder's output (its ``in_channels`` = the neck's, its
+    cells the occupancy grid's columns), trained on 3D boxes in the ego frame (``data.boxes``, ``data.box_frame =
+    ego``); ``predict`` then gives each voxel of a thing class an instance. None: semantic occupancy, as FlashOcc."""
 
     @property
     def sensors(self) -> tuple[str, ...]:
@@ -72,7 +83,7 @@ class FlashOccConfig:
     @property
     def training_targets(self) -> tuple[str, ...]:
         """What supervises the model in training beside the occupancy labels (never an input at inference)."""
-        return ("LiDAR depth",) if self.depth_weight else ()
+        return (("LiDAR depth",) if self.depth_weight else ()) + (("3D boxes",) if self.instances else ())
 
     @property
     def output_grid(self) -> VoxelGrid:
@@ -96,6 +107,10 @@ class FlashOccConfig:
                                                                              "temporal" if self.temporal else "")),
             "occupancy.in_channels": (self.occupancy.in_channels, self.bev.neck_channels, "bev.neck_channels"),
         }  # fmt: skip
+        if self.instances is not None:
+            checks["instances.in_channels"] = (self.instances.in_channels, self.bev.neck_channels, "bev.neck_channels")
+            checks["instances.bev_shape"] = (self.instances.bev_shape, tuple(self.lss.grid_size[:2]),
+                                             "lss.grid_size[:2], the occupancy columns")  # fmt: skip
         check_motion_input(self.flow, lidar=False)
         if self.flow is not None:
             checks["flow.in_channels"] = (self.flow.in_channels, self.occupancy.hidden_channels,
@@ -127,6 +142,7 @@ class FlashOcc(OccupancyModel):
         self.occupancy_head = OccupancyHead(cfg.occupancy)
         if cfg.flow is not None:
             self.flow_head = FlowHead(cfg.flow)
+        self.instance_head = CenterHead(cfg.instances) if cfg.instances is not None else None
 
     def plan(self, batch: Batch) -> PoolingPlan:
         images = camera_images(batch, "FlashOcc")
@@ -145,11 +161,14 @@ class FlashOcc(OccupancyModel):
         state = None
         if self.temporal is not None:  # (B, (K + 1) 64, X, Y) for BEVDet4D's concatenation
             bev, state = self.temporal(bev, *(inputs[name] for name in HISTORY_INPUTS))
-        logits, flow = self.occupancy_and_flow(self.occupancy_head, self.bev_encoder(bev))
-        return ModelOutput(occupancy=logits, depth=depth, history_state=state, flow=flow)
+        features = self.bev_encoder(bev)  # (B, 128, X, Y)
+        logits, flow = self.occupancy_and_flow(self.occupancy_head, features)
+        centres = self.instance_head(features) if self.instance_head is not None else None
+        return ModelOutput(occupancy=logits, depth=depth, history_state=state, flow=flow, detection=centres)
 
     def loss(self, output: ModelOutput, batch: Batch) -> dict[str, Tensor]:
-        """The occupancy loss and, with ``depth_weight``, the depth BCE (FlashOcc M0/M1 have no depth supervision)."""
+        """The occupancy loss, with ``depth_weight`` the depth BCE (FlashOcc M0/M1 have no depth supervision), and with
+        an instance head its centre heatmap and offset / height losses (``det_heatmap``, ``det_bbox``)."""
         if batch.voxel_semantics is None:
             raise ValueError("the occupancy loss needs batch.voxel_semantics")
         losses = self.occupancy_head.loss(output.occupancy, batch.voxel_semantics, batch.mask_camera)
@@ -157,7 +176,20 @@ class FlashOcc(OccupancyModel):
             maps = lidar_target(batch.depth_maps, output.depth, "depth", "FlashOcc", self.cfg.lss.feature_stride)
             losses["depth"] = self.cfg.depth_weight * depth_bce(output.depth, maps, self.cfg.lss.depth_range)
         losses.update(self.flow_losses(output, batch))
+        if self.instance_head is not None:
+            if batch.boxes is None:
+                raise ValueError("the instance-centre loss needs batch.boxes (data.boxes = true, data.box_frame = ego)")
+            centres = self.instance_head.loss(output.detection, batch.boxes, batch.box_labels)
+            losses.update({name: centres[name] for name in ("det_heatmap", "det_bbox")})
         return losses
+
+    def prediction(self, output: ModelOutput) -> OccPrediction:
+        """Class ids (and flow); with an instance head, also each voxel's instance id (0 for stuff)."""
+        prediction = super().prediction(output)
+        if self.instance_head is not None:
+            centres, _, labels = self.instance_head.centres(output.detection)
+            prediction.instances = assign_instances(prediction.semantics, centres, labels, self.cfg.output_grid)
+        return prediction
 
 
 ARCHITECTURE = Architecture(
@@ -168,6 +200,6 @@ ARCHITECTURE = Architecture(
         "image_encoder": ("image_encoder",),
         "view_transform": ("view_transform",),
         "fusion_bev_encoder": ("temporal", "bev_encoder"),
-        "heads": ("occupancy_head", "flow_head"),
+        "heads": ("occupancy_head", "flow_head", "instance_head"),
     },
 )

@@ -90,6 +90,9 @@ class SimConfig:
     """Fraction of LiDAR returns dropped (absorbing surfaces, sensor noise)."""
     surroundocc: bool = False
     """Also write SurroundOcc ground truth (LiDAR frame, 0.5 m, sparse (N, 4))."""
+    openocc: bool = False
+    """Also write OpenOcc v2 ground truth (``openocc_v2/``: Occ3D's grid in OpenOcc's 17 classes, with flow, no
+    visibility masks)."""
     jpeg_quality: int = 92
     """JPEG quality of the camera images."""
     world: WorldConfig = field(default_factory=WorldConfig)

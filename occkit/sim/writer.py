@@ -10,7 +10,10 @@ Layout under the dataset root::
     sweeps/LIDAR_TOP/<log>__LIDAR_TOP__<timestamp>.pcd.bin
     lidarseg/<version>/<token>_lidarseg.bin   uint8 per key-frame point: nuScenes-lidarseg category index
     <version>/lidarseg.json               the lidarseg table (token = the LiDAR sample_data token)
-    gts/<scene>/<sample_token>/labels.npz semantics, mask_lidar, mask_camera: uint8 (200, 200, 16)
+    gts/<scene>/<sample_token>/labels.npz semantics, mask_lidar, mask_camera: uint8 (200, 200, 16); flow
+                                          float32 (200, 200, 16, 2); instances, instance_ids, instance_tokens
+    openocc_v2/<scene>/<sample_token>/labels.npz   (--openocc) semantics in OpenOcc v2's ids, flow
+    surroundocc/samples/<LiDAR file>.npy  (--surroundocc) sparse (N, 4) rows x, y, z, class
     annotations.json                      Occ3D-style scene infos with train/val splits
 
 Reproducibility: tokens are hashes of names, tables are written in a fixed order, and the Occ3D label archives

@@ -11,11 +11,13 @@ from collections.abc import Iterable
 
 import numpy as np
 from matplotlib.axes import Axes
+from matplotlib.colors import hsv_to_rgb
 from matplotlib.patches import Patch
 
 from occkit.classes import EMPTY_COLOR, IGNORE_COLOR, IGNORE_INDEX, OCC3D, OCC3D_COLORS, UNOBSERVED_COLOR, Taxonomy
 
-__all__ = ["PALETTE", "UNOBSERVED_COLOR", "EMPTY_COLOR", "IGNORE_COLOR", "class_colors", "add_class_legend"]
+__all__ = ["PALETTE", "UNOBSERVED_COLOR", "EMPTY_COLOR", "IGNORE_COLOR", "class_colors", "instance_colors",
+           "add_class_legend"]
 
 #: ``(18, 3)`` uint8 RGB per Occ3D id (17 = free).
 PALETTE = np.array(OCC3D_COLORS, dtype=np.uint8)
@@ -41,6 +43,33 @@ def class_colors(labels: np.ndarray, taxonomy: Taxonomy = OCC3D) -> np.ndarray:
     table = np.tile(np.array(IGNORE_COLOR, np.uint8), (256, 1))  # (256, 3): every uint8 id, ignore included
     table[: len(palette)] = palette
     return table[labels.astype(np.uint8)]
+
+
+def instance_colors(labels: np.ndarray, instances: np.ndarray, taxonomy: Taxonomy = OCC3D) -> np.ndarray:
+    """RGB of panoptic voxels: each object instance its own colour, stuff its class colour.
+
+    An instance's colour is a hue stepped by the golden ratio from its id (so neighbouring ids differ strongly), at
+    high saturation and brightness: the same object has the same colour in every frame that gives it the same id
+    (the synthetic world's ids hold over time), and no class colour decides it.
+
+    Args:
+        labels: integer class ids of ``taxonomy``, any shape ``S``.
+        instances: integer instance ids of the same shape (0: stuff, coloured by class).
+        taxonomy: the label set of ``labels``.
+
+    Returns:
+        ``(*S, 3)`` uint8.
+    """
+    labels, instances = np.asarray(labels), np.asarray(instances)
+    if labels.shape != instances.shape:
+        raise ValueError(f"labels {labels.shape} and instances {instances.shape} differ in shape")
+    colors = class_colors(labels, taxonomy)
+    objects = instances > 0
+    if objects.any():
+        hue = (instances[objects].astype(np.float64) * 0.6180339887498949) % 1.0
+        hsv = np.stack([hue, np.full_like(hue, 0.75), np.full_like(hue, 0.95)], axis=-1)
+        colors[objects] = np.round(255 * hsv_to_rgb(hsv)).astype(np.uint8)
+    return colors
 
 
 def add_class_legend(axis: Axes, class_ids: Iterable[int], extra: Iterable[tuple[str, tuple[int, int, int]]] = (),

@@ -49,6 +49,7 @@ from PIL import Image
 from occkit.classes import DETECTION_CLASSES
 from occkit.data.collate import collate
 from occkit.data.dataset import DatasetConfig, OccupancyDataset
+from occkit.data.labels import has_instances
 from occkit.label_space import OCC3D_SPACE, LabelSpace, label_space
 from occkit.nuscenes import CAMERAS
 from occkit.types import Batch
@@ -62,7 +63,8 @@ from occkit.viz.errors import (
     frame_scores,
     voxel_outcomes,
 )
-from occkit.viz.run import Predictor, folder_predictor
+from occkit.viz.palette import instance_colors
+from occkit.viz.run import Predicted, Predictor, folder_predictor
 from occkit.viz.serving import ViewerServer
 
 if TYPE_CHECKING:  # the engine (models, zoo) is imported only when a model predicts
@@ -105,8 +107,10 @@ ENTITIES = {
     "occupancy": "world/ego/occupancy",
     "gt": "world/ego/occupancy/gt",
     "gt_camera": "world/ego/occupancy/gt_camera",
+    "gt_instances": "world/ego/occupancy/gt_instances",
     "prediction": "world/ego/occupancy/prediction",
     "prediction_camera": "world/ego/occupancy/prediction_camera",
+    "prediction_instances": "world/ego/occupancy/prediction_instances",
     "errors": "world/ego/occupancy/errors",
     "scores": "scores",
 }
@@ -171,8 +175,9 @@ def occupied(semantics: np.ndarray, space: LabelSpace | str = OCC3D_SPACE,
 
 
 def _log_voxels(entity: str, keep: np.ndarray, class_ids: np.ndarray, space: LabelSpace,
-                recording: rr.RecordingStream | None) -> int:  # fmt: skip
-    """Voxels ``keep`` (``(X, Y, Z)`` bool) of ``space``'s grid as solid boxes with ``class_ids`` (``(X, Y, Z)``)."""
+                recording: rr.RecordingStream | None, instances: np.ndarray | None = None) -> int:  # fmt: skip
+    """Voxels ``keep`` (``(X, Y, Z)`` bool) of ``space``'s grid as solid boxes with ``class_ids`` (``(X, Y, Z)``),
+    coloured by class, or with ``instances`` (``(X, Y, Z)``) each object its own colour (the class still on hover)."""
     grid = space.grid
     if keep.shape != grid.shape:
         raise ValueError(f"{entity}: the grid is {keep.shape}, but {space.name} labels are {grid.shape}")
@@ -183,13 +188,15 @@ def _log_voxels(entity: str, keep: np.ndarray, class_ids: np.ndarray, space: Lab
     # box at the origin for a half size without a centre). Class names show on hover: as labels on every voxel they
     # would hide the scene.
     half_sizes = (size / 2)[None] if len(index) else np.zeros((0, 3), np.float32)
+    colors = None if instances is None else instance_colors(class_ids[keep], instances[keep], space.taxonomy)
     rr.log(entity, rr.Boxes3D(centers=centres, half_sizes=half_sizes, class_ids=class_ids[keep].astype(np.uint16),
-                              fill_mode="solid", show_labels=False), recording=recording)  # fmt: skip
+                              colors=colors, fill_mode="solid", show_labels=False), recording=recording)  # fmt: skip
     return len(index)
 
 
 def log_occupancy(entity: str, semantics: np.ndarray, space: LabelSpace | str = OCC3D_SPACE,
-                  mask: np.ndarray | None = None, recording: rr.RecordingStream | None = None) -> int:  # fmt: skip
+                  mask: np.ndarray | None = None, recording: rr.RecordingStream | None = None,
+                  instances: np.ndarray | None = None) -> int:  # fmt: skip
     """Occupied voxels of a label grid at ``entity``, in the label frame (log it under ``world/ego/occupancy``, whose
     transform :func:`log_batch` sets, to place them around the ego).
 
@@ -197,13 +204,15 @@ def log_occupancy(entity: str, semantics: np.ndarray, space: LabelSpace | str = 
         entity: entity path, e.g. ``ENTITIES["gt"]``.
         semantics: ``(X, Y, Z)`` integer class ids of ``space`` (255 = ignored).
         mask: optional ``(X, Y, Z)`` bool; only voxels it keeps are logged.
+        instances: optional ``(X, Y, Z)`` panoptic instance ids: each object its own colour, stuff (0) by class.
 
     Returns:
         the number of voxels logged.
     """
     space = label_space(space)
     semantics = np.asarray(semantics)
-    return _log_voxels(entity, occupied(semantics, space, mask), semantics, space, recording)
+    ids = None if instances is None else np.asarray(instances)
+    return _log_voxels(entity, occupied(semantics, space, mask), semantics, space, recording, ids)
 
 
 def log_prediction(prediction: np.ndarray | torch.Tensor, gt: np.ndarray | torch.Tensor | None = None,
@@ -294,7 +303,7 @@ def log_batch(batch: Batch, index: int = 0, space: LabelSpace | str = OCC3D_SPAC
             and are not drawn; without files each camera gets its pose and the pinhole of the augmented image.
 
     Returns:
-        counts by entity role: ``points``, ``boxes``, ``images``, ``gt`` and ``gt_camera`` (voxels).
+        counts by entity role: ``points``, ``boxes``, ``images``, ``gt``, ``gt_camera`` and ``gt_instances`` (voxels).
     """
     space = label_space(space)
     counts = {}
@@ -323,9 +332,12 @@ def log_batch(batch: Batch, index: int = 0, space: LabelSpace | str = OCC3D_SPAC
         rr.log(ENTITIES["occupancy"], _transform(label_to_ego), recording=recording)
         semantics = batch.voxel_semantics[index].cpu().numpy()
         counts["gt"] = log_occupancy(ENTITIES["gt"], semantics, space, recording=recording)
-        if batch.mask_camera is not None:
-            mask = batch.mask_camera[index].cpu().numpy()
+        mask = None if batch.mask_camera is None else batch.mask_camera[index].cpu().numpy()
+        if mask is not None:
             counts["gt_camera"] = log_occupancy(ENTITIES["gt_camera"], semantics, space, mask, recording)
+        if batch.voxel_instances is not None:
+            counts["gt_instances"] = log_occupancy(ENTITIES["gt_instances"], semantics, space, mask, recording,
+                                                   batch.voxel_instances[index].cpu().numpy())  # fmt: skip
     return counts
 
 
@@ -341,7 +353,8 @@ def _view_3d(name: str, shown: Sequence[str], hidden: Sequence[str] = ()) -> rrb
     )  # fmt: skip
 
 
-def scene_blueprint(cameras: Sequence[str], masked: bool, labelled: bool, prediction_name: str | None) -> rrb.Blueprint:
+def scene_blueprint(cameras: Sequence[str], masked: bool, labelled: bool, prediction_name: str | None,
+                    panoptic: bool = False) -> rrb.Blueprint:  # fmt: skip
     """The viewer's layout: 3D views of the ground truth, the prediction and its errors side by side, the cameras
     below, and the frame's scores with predictions.
 
@@ -351,11 +364,14 @@ def scene_blueprint(cameras: Sequence[str], masked: bool, labelled: bool, predic
             and list the full grids switched off.
         labelled: the recording holds ground-truth occupancy.
         prediction_name: the predictions' name for the view titles; None without predictions.
+        panoptic: the recording holds instance layers (``gt_instances``, ``prediction_instances``): listed in their
+            views, switched off.
     """
 
     def layers(role: str) -> tuple[list[str], list[str]]:
         """The occupancy entities of ``role`` shown and listed switched off."""
-        return ([f"{role}_camera"], [role]) if masked else ([role], [])
+        shown, hidden = ([f"{role}_camera"], [role]) if masked else ([role], [])
+        return shown, hidden + ([f"{role}_instances"] if panoptic else [])
 
     if labelled:
         shown, hidden = layers("gt")
@@ -424,7 +440,8 @@ class Scene:
     indices: tuple[int, ...]
     """Dataset indices of the frames to record, in time order."""
     predict: Predictor | None = None
-    """Token -> ``(X, Y, Z)`` predicted classes; called for the frames in time order (a temporal model streams)."""
+    """Token -> the predicted classes ``(X, Y, Z)`` (and instances); called for the frames in time order (a temporal
+    model streams)."""
     prediction_name: str | None = None
     """The predictions' name: their folder's, or the checkpoint's run folder's."""
 
@@ -438,7 +455,8 @@ class Scene:
         return self.labelled and "camera" in self.dataset.space.masks
 
     def blueprint(self) -> rrb.Blueprint:
-        return scene_blueprint(self.dataset.config.cameras, self.masked, self.labelled, self.prediction_name)
+        return scene_blueprint(self.dataset.config.cameras, self.masked, self.labelled, self.prediction_name,
+                               self.dataset.config.instances)  # fmt: skip
 
 
 def _name_list(names: Sequence[str], limit: int = 12) -> str:
@@ -457,10 +475,11 @@ def _model_predictor(config: ViewConfig, model: torch.nn.Module, experiment) -> 
     memory, _ = stream_memory(model, 1)
 
     @torch.no_grad()
-    def predict(token: str) -> np.ndarray:
+    def predict(token: str) -> Predicted:
         batch = collate([dataset[position[token]]]).to(config.device)
         prediction = model.predict(batch) if memory is None else model.predict(batch, memory=memory)
-        return prediction.semantics[0].cpu().numpy()
+        instances = None if prediction.instances is None else prediction.instances[0].cpu().numpy()
+        return Predicted(prediction.semantics[0].cpu().numpy(), instances)
 
     return predict
 
@@ -496,8 +515,10 @@ def open_scene(config: ViewConfig) -> Scene:
     records = [listing.records[i] for i in indices]
     cameras = tuple(camera for camera in CAMERAS if camera in records[0].cameras)
     labelled = all(listing.label_path(record).is_file() for record in records)
+    panoptic = labelled and space.name == "occ3d" and all(has_instances(listing.label_path(r)) for r in records)
     # The key frame's points only (sweeps=0): what the LiDAR saw at the frame's time.
-    dataset = OccupancyDataset(DatasetConfig(**common, cameras=cameras, sweeps=0, occupancy=labelled, boxes=True))
+    dataset = OccupancyDataset(DatasetConfig(**common, cameras=cameras, sweeps=0, occupancy=labelled, boxes=True,
+                                             instances=panoptic))  # fmt: skip
     predict, prediction_name = None, None
     if config.pred is not None:
         predict = folder_predictor(Path(config.pred), [record.token for record in records], space)
@@ -531,7 +552,11 @@ def record_scene(scene: Scene, recording: rr.RecordingStream | None = None,
         if scene.predict is not None:
             gt = None if batch.voxel_semantics is None else batch.voxel_semantics[0]
             mask = None if batch.mask_camera is None else batch.mask_camera[0]
-            entry.update(log_prediction(scene.predict(record.token), gt, mask, space, recording))
+            predicted = scene.predict(record.token)
+            entry.update(log_prediction(predicted.semantics, gt, mask, space, recording))
+            if predicted.instances is not None:
+                entry["prediction_instances"] = log_occupancy(ENTITIES["prediction_instances"], predicted.semantics,
+                                                              space, mask, recording, predicted.instances)  # fmt: skip
         frames.append(entry)
         if progress is not None:
             progress(f"[view] {number}/{len(records)} {record.token}")

@@ -14,7 +14,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 import torch
@@ -23,6 +23,7 @@ from PIL import Image
 
 from occkit.data.dataset import DatasetConfig, OccupancyDataset
 from occkit.data.index import FrameRecord
+from occkit.data.labels import has_instances
 from occkit.data.names import path_under, safe_name
 from occkit.data.transforms import ImageAugConfig, augment_image, sample_image_aug
 from occkit.figure import MIN_PALETTE_COLORS, save_figure
@@ -40,7 +41,14 @@ if TYPE_CHECKING:  # the engine (models, zoo) is imported only when a model pred
 
 __all__ = ["VizConfig", "render_frames"]
 
-Predictor = Callable[[str], np.ndarray]
+class Predicted(NamedTuple):
+    """One frame's prediction: class ids ``(X, Y, Z)`` and, from a panoptic model or file, instance ids."""
+
+    semantics: np.ndarray
+    instances: np.ndarray | None = None
+
+
+Predictor = Callable[[str], Predicted]
 
 
 #: An upper bound on the inches of one figure (the comparison and BEV figures are the widest, 13 in; the cameras
@@ -136,7 +144,7 @@ def _camera_set(dataset: OccupancyDataset, record: FrameRecord, sample: Sample) 
 def folder_predictor(folder: Path, tokens: Sequence[str], space: LabelSpace) -> Predictor:
     """Predictions read from ``folder/<token>.npz``; every frame's file is checked before anything is drawn or
     recorded (``occkit viz`` and ``occkit view``)."""
-    from occkit.metrics.evaluate import read_prediction
+    from occkit.metrics.evaluate import read_prediction, read_prediction_instances
 
     if not folder.is_dir():
         raise FileNotFoundError(f"prediction folder {folder} does not exist")
@@ -145,7 +153,7 @@ def folder_predictor(folder: Path, tokens: Sequence[str], space: LabelSpace) -> 
     for token, path in files.items():
         if not path.is_file():
             raise FileNotFoundError(f"no prediction for sample {token}: {path} not found")
-    return lambda token: read_prediction(files[token], space)
+    return lambda token: Predicted(read_prediction(files[token], space), read_prediction_instances(files[token], space))
 
 
 def _model_predictor(config: VizConfig) -> tuple[Predictor, LabelSpace]:
@@ -159,17 +167,20 @@ def _model_predictor(config: VizConfig) -> tuple[Predictor, LabelSpace]:
     position = {record.token: i for i, record in enumerate(dataset.records)}
 
     @torch.no_grad()
-    def predict(token: str) -> np.ndarray:
-        batch = collate([dataset[position[token]]]).to(config.device)
-        return model.predict(batch).semantics[0].cpu().numpy()
+    def predict(token: str) -> Predicted:
+        prediction = model.predict(collate([dataset[position[token]]]).to(config.device))
+        instances = None if prediction.instances is None else prediction.instances[0].cpu().numpy()
+        return Predicted(prediction.semantics[0].cpu().numpy(), instances)
 
     return predict, space
 
 
 def _views(
-    sample: Sample, cameras: CameraSet | None, pred: np.ndarray | None, pred_name: str, title: str, space: LabelSpace
+    sample: Sample, cameras: CameraSet | None, predicted: Predicted | None, pred_name: str, title: str,
+    space: LabelSpace,
 ) -> list[tuple[str, str, Callable[[], Figure]]]:
     """``(file stem, caption, figure factory)`` of every view the frame has data for."""
+    pred = None if predicted is None else predicted.semantics
     gt = None if sample.voxel_semantics is None else sample.voxel_semantics.numpy()
     mask = None if sample.mask_camera is None else sample.mask_camera.numpy()
     orientation = "forward up, left on the left" if space.frame == "ego" else f"the {space.frame} frame's x up"
@@ -191,6 +202,15 @@ def _views(
         seen = " (the voxels the cameras see in the ground truth)" if mask is not None else ""
         views.append(("voxels_pred", f"{pred_name} in 3D{seen}.",
                       partial(voxel_figure, pred, mask, space, title=f"{title}: {pred_name}")))  # fmt: skip
+    # Panoptic: every object its own colour, the same in every frame where its id holds (the synthetic world's do).
+    for stem, grid, ids, what in (("instances_gt", gt, sample.voxel_instances, "Ground truth"),
+                                  ("instances_pred", pred, None if predicted is None else predicted.instances,
+                                   pred_name)):  # fmt: skip
+        if grid is not None and ids is not None:
+            views.append((stem, f"{what}'s instances in 3D{' (camera-visible voxels)' if mask is not None else ''}: "
+                          "each object its own colour, stuff by class.",
+                          partial(voxel_figure, grid, mask, space, title=f"{title}: {what} instances",
+                                  instances=np.asarray(ids))))  # fmt: skip
     if cameras is None:
         return views
     if sample.points is not None:
@@ -213,11 +233,12 @@ def _render_frame(
     """Every view of one frame into ``out/<token>/``; the page's images and the frame's JSON entry."""
     record = dataset.records[index]
     sample = dataset[index]
-    pred = None if predict is None else predict(record.token)
+    predicted = None if predict is None else predict(record.token)
+    pred = None if predicted is None else predicted.semantics
     cameras = _camera_set(dataset, record, sample) if dataset.config.cameras else None
     images, files = [], {}
     title = f"{record.scene} / {record.token}"
-    for stem, caption, draw in _views(sample, cameras, pred, pred_name, title, dataset.space):
+    for stem, caption, draw in _views(sample, cameras, predicted, pred_name, title, dataset.space):
         folder = path_under(config.out, safe_name(record.token, "sample token"), f"--out {config.out}")
         path = save_figure(draw(), folder / f"{stem}.png", config.dpi, config.colors)
         files[stem] = f"{record.token}/{path.name}"
@@ -257,8 +278,9 @@ def render_frames(config: VizConfig, progress: Callable[[str], None] = print) ->
     image_aug = _display_transform(root / records[0].cameras[cameras[0]].path, config.display_width) if cameras \
         else ImageAugConfig()  # fmt: skip
     labelled = all(listing.label_path(records[i]).is_file() for i in picks)
+    panoptic = labelled and space.name == "occ3d" and all(has_instances(listing.label_path(records[i])) for i in picks)
     dataset = OccupancyDataset(DatasetConfig(**common, cameras=cameras, sweeps=config.sweeps, occupancy=labelled,
-                                             image_aug=image_aug))  # fmt: skip
+                                             instances=panoptic, image_aug=image_aug))  # fmt: skip
     if config.pred is not None:
         tokens = [records[i].token for i in picks]
         predict = folder_predictor(Path(config.pred), tokens, space)

@@ -22,7 +22,7 @@ from occkit.classes import IGNORE_INDEX
 from occkit.figure import new_figure
 from occkit.label_space import OCC3D_SPACE, LabelSpace
 from occkit.viz.bev import EGO_BOX
-from occkit.viz.palette import add_class_legend, class_colors
+from occkit.viz.palette import add_class_legend, class_colors, instance_colors
 
 __all__ = ["EGO_COLOR", "voxel_faces", "view_direction", "draw_voxels", "voxel_figure"]
 
@@ -104,6 +104,7 @@ def draw_voxels(
     elevation_deg: float = 32.0,
     azimuth_deg: float = 195.0,
     zoom: float = 1.5,
+    instances: np.ndarray | None = None,
 ) -> int:
     """Draw the occupied voxels of a label grid on a 3D axis, lit, with the ego car as a black box.
 
@@ -115,6 +116,8 @@ def draw_voxels(
         space: the label space of ``semantics`` (voxel size and origin in metres, classes, colours); the ego car is
             drawn when its frame is the ego frame.
         zoom: scale of the grid's box in the axes.
+        instances: optional ``(X, Y, Z)`` panoptic instance ids: each object its own colour, stuff (0) its class's
+            (:func:`~occkit.viz.palette.instance_colors`).
 
     Returns:
         the number of faces drawn (the car's six included when drawn).
@@ -127,7 +130,10 @@ def draw_voxels(
     towards_viewer = view_direction(elevation_deg, azimuth_deg)
     voxels, corners, normals = voxel_faces(drawn, towards_viewer)
     size, lower = np.array(grid.voxel_size), np.array(grid.lower)
-    colors = _lit(class_colors(semantics[tuple(voxels.T)], space.taxonomy).astype(np.float64), normals)  # (F, 3)
+    faces = tuple(voxels.T)
+    base = class_colors(semantics[faces], space.taxonomy) if instances is None else \
+        instance_colors(semantics[faces], np.asarray(instances)[faces], space.taxonomy)  # fmt: skip
+    colors = _lit(base.astype(np.float64), normals)  # (F, 3)
     corners, edges = corners * size + lower, colors * 0.8  # (F, 4, 3) metres; darker voxel edges
     if space.frame == "ego":
         ego_normals = np.array(list(_FACES), dtype=np.float64)  # (6, 3)
@@ -155,13 +161,22 @@ def voxel_figure(
     title: str = "",
     elevation_deg: float = 32.0,
     azimuth_deg: float = 195.0,
+    instances: np.ndarray | None = None,
 ) -> Figure:
-    """One frame's occupied voxels in 3D with a class legend; see :func:`draw_voxels`."""
+    """One frame's occupied voxels in 3D with a class legend; see :func:`draw_voxels`. With ``instances``, every
+    object has its own colour and the legend lists the stuff classes and the number of objects."""
     figure = new_figure(8.0, 4.6)
     axis = figure.add_axes((-0.02, -0.05, 0.82, 1.0), projection="3d")
-    draw_voxels(axis, semantics, mask, space, elevation_deg, azimuth_deg)
-    drawn = np.asarray(semantics) if mask is None else np.asarray(semantics)[np.asarray(mask, dtype=bool)]
+    draw_voxels(axis, semantics, mask, space, elevation_deg, azimuth_deg, instances=instances)
+    keep = np.ones(np.shape(semantics), bool) if mask is None else np.asarray(mask, dtype=bool)
+    drawn = np.asarray(semantics)[keep]
     extra = [("ego car", EGO_COLOR)] if space.frame == "ego" else []
+    if instances is not None:
+        ids = np.asarray(instances)[keep]
+        drawn = drawn[ids == 0]  # the classes of objects are told by the objects' own colours
+        objects = np.unique(ids[ids > 0])
+        swatch = instance_colors(np.zeros(1, np.uint8), np.ones(1, np.int32), space.taxonomy)[0]  # object 1's
+        extra.append((f"{len(objects)} objects, one colour each", tuple(int(c) for c in swatch)))
     add_class_legend(axis, np.unique(drawn), extra, space.taxonomy, bbox_to_anchor=(1.0, 0.85))
     if title:
         figure.suptitle(title, fontsize=9)

@@ -18,7 +18,7 @@ from occkit.models.range_extension import RangeExtensionConfig
 from occkit.models.view_transform.projection import ProjectionConfig
 from occkit.nuscenes import CAMERAS
 from occkit.zoo.registry import preset
-from occkit.zoo.variants import with_flow_head
+from occkit.zoo.variants import in_openocc, with_flow_head
 
 PAPER = "DAOcc (Yang et al., TCSVT 2025)"
 
@@ -175,5 +175,12 @@ def daocc_tiny_flow() -> Experiment:
     input: the key frame and its 4 sweeps, one BEV channel each, where a moving object shows its motion within one
     sample (``data.sweeps = 0`` leaves the key frame alone)."""
     return with_flow_head(daocc_tiny(), motion=True)
+
+
+@preset("daocc")
+def daocc_tiny_flow_openocc() -> Experiment:
+    """daocc_tiny_flow on OpenOcc v2's labels (``occkit sim --openocc`` writes them beside Occ3D's): 17 classes with
+    free = 16, no visibility mask, scored as the CVPR 2024 challenge scores them (RayIoU, mAVE, OccScore)."""
+    return in_openocc(daocc_tiny_flow())
 
 

@@ -5,11 +5,13 @@ from __future__ import annotations
 
 import dataclasses
 
+from occkit.classes import DETECTION_CLASSES
 from occkit.data.dataset import DatasetConfig
 from occkit.experiment import CPU_TRAIN, Experiment, TrainConfig, cpu_data, reproduces
 from occkit.label_space import OCC3D_SPACE
 from occkit.models.bev_encoder import BevEncoderConfig
 from occkit.models.flashocc import FlashOccConfig
+from occkit.models.heads.center import CenterHeadConfig
 from occkit.models.heads.occupancy import OccupancyHeadConfig
 from occkit.models.image_encoder import ImageEncoderConfig
 from occkit.models.temporal import TemporalConfig
@@ -19,6 +21,7 @@ from occkit.zoo.registry import preset
 from occkit.zoo.variants import with_flow_head
 
 PAPER = "FlashOcc (Yu et al., 2023), Table 2 and its code's README"
+PANOPTIC_PAPER = "Panoptic-FlashOcc (Yu et al., 2024), its code's config panoptic-flashocc-r50-depth-tiny-pano.py"
 
 #: FlashOcc's schedule (its configs): AdamW 1e-4, weight decay 0.01, clip 5, 24 epochs at a global batch of 16, mmcv's
 #: step policy with ``step=[24]`` (constant after 200 warm-up steps from 0.001 of the rate), MEGVII EMA.
@@ -80,6 +83,46 @@ def flashocc_m0_4d() -> Experiment:
     return Experiment("flashocc", model, dataclasses.replace(DATA, history=1), TRAIN)
 
 
+def _instance_head(in_channels: int, **changes: object) -> CenterHeadConfig:
+    """Panoptic-FlashOcc's instance-centre head (its config's ``Centerness_Head``): one task of the 10 detection
+    classes on the BEV encoder's output at 0.4 m cells (0.1 m x 4), 64 shared and branch channels; the heatmap and the
+    centre's offset and height are trained (``task_specific_weight = [1, 1, 0, 0, 0]``: box size, yaw and velocity at
+    zero weight); centres above 0.3 (its box coder's threshold), at most 500."""
+    head = CenterHeadConfig(
+        in_channels=in_channels, tasks=(DETECTION_CLASSES,), share_conv_channels=64, head_conv_channels=64,
+        point_cloud_range=(-40.0, -40.0, -5.0, 40.0, 40.0, 3.0), voxel_size=(0.1, 0.1), out_size_factor=4,
+        code_weights=(1.0, 1.0, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0), score_threshold=0.3, max_num=500,
+        nms_types=("rotate",), circle_nms_radii=(4.0,), post_max_size=500,
+        nms_scales=((1.0, 0.7, 0.7, 0.4, 0.55, 1.1, 1.0, 1.0, 1.5, 3.5),),
+    )  # fmt: skip
+    return dataclasses.replace(head, **changes)
+
+
+#: What a panoptic entry loads beside the images: the boxes in the ego frame (the centre head's targets, mmdet3d's
+#: valid flag) and the labels' instance ids (RayPQ's ground truth).
+PANOPTIC_DATA = dataclasses.replace(DATA, boxes=True, box_frame="ego", valid_boxes_only=True, instances=True)
+
+
+@preset("flashocc")
+@reproduces(PANOPTIC_PAPER, "Panoptic-FlashOcc (1f), R50 256 x 704, depth supervision, no camera mask",
+            "34.82 RayIoU, 12.89 RayPQ, Occ3D-nuScenes val")
+def flashocc_pano() -> Experiment:
+    """Panoptic-FlashOcc, single frame: FlashOcc M0 with the instance-centre head on its 128-channel BEV, LiDAR depth
+    supervision of the depth bins (weight 1), class-balanced cross-entropy over every voxel (no camera mask), and
+    voxels of thing classes assigned to the nearest centre of their class. The reference lifts with BEVDepth's
+    camera-aware DepthNet and trains the occupancy with a sigmoid focal loss; this entry keeps FlashOcc's 1x1 depth
+    net and occkit's drop-free cross-entropy (docs/reproducing.md)."""
+    cfg = _paper_model()
+    model = dataclasses.replace(
+        cfg, depth_weight=1.0, instances=_instance_head(cfg.bev.neck_channels),
+        occupancy=dataclasses.replace(cfg.occupancy, use_mask=False, class_balance=True),
+    )  # fmt: skip
+    data = dataclasses.replace(PANOPTIC_DATA, sweeps=0, depth_downsample=cfg.lss.feature_stride)
+    # Its config starts from BEVDet4D-Depth's detection checkpoint.
+    train = dataclasses.replace(TRAIN, load_from="ckpts/bevdet-r50-4d-depth-cbgs.pth")
+    return Experiment("flashocc", model, data, train)
+
+
 @preset("flashocc")
 def flashocc_tiny() -> Experiment:
     """FlashOcc's architecture scaled down for CPUs: ResNet-18 (one block per stage) C4/C5 at 128 x 352, 22 depth
@@ -102,5 +145,17 @@ def flashocc_tiny_flow() -> Experiment:
     voxels), trained on labels that carry flow (``data.flow``, which the synthetic world writes): the CVPR 2024
     occupancy-and-flow task at CPU size, scored with mAVE and OccScore."""
     return with_flow_head(flashocc_tiny())
+
+
+@preset("flashocc")
+def flashocc_tiny_pano() -> Experiment:
+    """flashocc_tiny with Panoptic-FlashOcc's instance-centre head (16 shared and branch channels, the heatmap's prior
+    initialisation of the short schedules): panoptic occupancy at CPU size, scored with RayPQ (``occkit eval
+    --rayiou``) against the synthetic world's exact instance labels."""
+    tiny = flashocc_tiny()
+    model = dataclasses.replace(tiny.model, instances=_instance_head(tiny.model.bev.neck_channels,
+                                                                     share_conv_channels=16, head_conv_channels=16,
+                                                                     heatmap_init_std=0.01))  # fmt: skip
+    return Experiment("flashocc", model, cpu_data(PANOPTIC_DATA), CPU_TRAIN)
 
 

@@ -93,7 +93,9 @@ class CenterHeadConfig:
     max_objects: int = 500
     """Regression targets per sample and task (boxes beyond are dropped)."""
     code_weights: tuple[float, ...] = (1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 0.2, 0.2)
-    """L1 weight of each of the 10 regression components (reg 2, z, log dims 3, sin, cos, velocity 2)."""
+    """L1 weight of each of the 10 regression components (reg 2, z, log dims 3, sin, cos, velocity 2). A branch whose
+    weights are all 0 is not built, as it could never train (Panoptic-FlashOcc's centre head regresses only the
+    offset and the height); :meth:`CenterHead.decode` then refuses, :meth:`CenterHead.centres` does not need it."""
     heatmap_loss_weight: float = 1.0
     """Weight of the Gaussian focal loss."""
     bbox_loss_weight: float = 0.25
@@ -156,6 +158,16 @@ class CenterHeadConfig:
             raise ValueError(f"final_kernel must be odd, got {self.final_kernel}")
 
     @property
+    def trained_branches(self) -> tuple[str, ...]:
+        """The regression branches with a nonzero weight, in :data:`REGRESSION_BRANCHES` order."""
+        names, start = [], 0
+        for name, channels in REGRESSION_BRANCHES:
+            if any(self.code_weights[start:start + channels]):
+                names.append(name)
+            start += channels
+        return tuple(names)
+
+    @property
     def cell_size(self) -> tuple[float, float]:
         """BEV cell size (m) along x and y."""
         return (self.voxel_size[0] * self.out_size_factor, self.voxel_size[1] * self.out_size_factor)
@@ -211,7 +223,8 @@ class CenterHead(nn.Module):
 
     ``forward(bev) -> list[dict]`` (per task: ``heatmap (B, K_t, X, Y)`` logits, ``reg (B, 2, X, Y)``,
     ``height (B, 1, X, Y)``, ``dim (B, 3, X, Y)`` log sizes, ``rot (B, 2, X, Y)`` sin/cos, ``vel (B, 2, X, Y)``);
-    ``targets(boxes, labels, bev_shape)``; ``loss(outputs, boxes, labels)``; ``decode(outputs)``.
+    ``targets(boxes, labels, bev_shape)``; ``loss(outputs, boxes, labels)``; ``decode(outputs)`` (boxes);
+    ``centres(outputs)`` (object centres, for panoptic occupancy).
     """
 
     def __init__(self, cfg: CenterHeadConfig) -> None:
@@ -227,7 +240,7 @@ class CenterHead(nn.Module):
             SeparateHead(
                 cfg.share_conv_channels,
                 cfg.head_conv_channels,
-                {**dict(REGRESSION_BRANCHES), "heatmap": len(task)},
+                {**{name: c for name, c in REGRESSION_BRANCHES if name in cfg.trained_branches}, "heatmap": len(task)},
                 cfg.num_convs,
                 cfg.final_kernel,
             )
@@ -382,7 +395,11 @@ class CenterHead(nn.Module):
             num_peaks = target.heatmap.eq(1).sum().float().clamp_min(1.0)
             heat = gaussian_focal_loss(probs, target.heatmap) / num_peaks * self.cfg.heatmap_loss_weight
 
-            pred = torch.cat([out[name] for name, _ in REGRESSION_BRANCHES], dim=1).float()  # (B, 10, X, Y)
+            maps = out["heatmap"]
+            # A branch left out (all its weights 0) regresses zeros: its components weigh nothing in the loss.
+            parts = [out[name] if name in out else maps.new_zeros(maps.shape[0], channels, *maps.shape[2:])
+                     for name, channels in REGRESSION_BRANCHES]  # fmt: skip
+            pred = torch.cat(parts, dim=1).float()  # (B, 10, X, Y)
             pred = pred.flatten(2).transpose(1, 2)  # (B, X * Y, 10), row ix * Y + iy
             pred = pred.gather(1, target.indices[..., None].expand(-1, -1, CODE_SIZE))  # (B, max_objects, 10)
             weight = target.mask[..., None] & torch.isfinite(target.boxes)
@@ -397,13 +414,40 @@ class CenterHead(nn.Module):
         return {"det_heatmap": heat_total, "det_bbox": bbox_total, **losses}
 
     # ------------------------------------------------------------------------------------------- decoding
+    def _candidates(self, out: dict[str, Tensor], peaks: bool) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+        """One task's top ``max_num`` (class, cell) pairs by score over the sigmoid heatmap (with ``peaks``, only
+        cells equal to the 3 x 3 max-pool of their class's map), and their centres.
+
+        Returns:
+            ``scores``, ``classes`` (index within the task), ``cells`` (flat ``ix * Y + iy``), each ``(B, k)``, by
+            decreasing score; ``centres`` ``(B, k, 3)``: ``x = (ix + reg_x) * cell_x + x_min``, ``y`` likewise,
+            ``z = height``; ``keep`` ``(B, k)``: above ``score_threshold`` with the centre in ``post_center_range``.
+        """
+        cfg = self.cfg
+        heat = out["heatmap"].float().sigmoid()
+        if peaks:
+            heat = heat * (nn.functional.max_pool2d(heat, 3, stride=1, padding=1) == heat)
+        batch, num_classes, size_x, size_y = heat.shape
+        cells = size_x * size_y
+        scores, flat = heat.reshape(batch, -1).topk(min(cfg.max_num, num_classes * cells), dim=1)
+        classes, cell = flat // cells, flat % cells
+        reg = _gather(out["reg"], cell)
+        (cell_x, cell_y), (x_min, y_min) = cfg.cell_size, cfg.point_cloud_range[:2]
+        x = ((cell // size_y).float() + reg[:, 0]) * cell_x + x_min
+        y = ((cell % size_y).float() + reg[:, 1]) * cell_y + y_min
+        centres = torch.stack([x, y, _gather(out["height"], cell)[:, 0]], dim=-1)
+        low, high = (torch.tensor(bound, device=heat.device) for bound in (cfg.post_center_range[:3],
+                                                                            cfg.post_center_range[3:]))  # fmt: skip
+        keep = (scores > cfg.score_threshold) & (centres >= low).all(-1) & (centres <= high).all(-1)
+        return scores, classes, cell, centres, keep
+
     @torch.no_grad()
     def decode(self, outputs: list[dict[str, Tensor]]) -> tuple[list[Tensor], list[Tensor], list[Tensor]]:
         """Boxes from the head's maps, per sample, concatenated over tasks in task order.
 
-        Per task: sigmoid heatmap; top ``max_num`` over classes x cells; ``x = (ix + reg_x) * cell_x + x_min``,
-        ``y`` likewise, ``z = height``, ``(l, w, h) = exp(dim)``, ``yaw = atan2(sin, cos)``, velocity as predicted;
-        keep ``score > score_threshold`` with the centre inside ``post_center_range``; then the task's NMS: circle
+        Per task: the top ``max_num`` candidates over classes x cells of the sigmoid heatmap, decoded as in
+        :meth:`_candidates`, with ``(l, w, h) = exp(dim)``, ``yaw = atan2(sin, cos)``, velocity as predicted; keep
+        ``score > score_threshold`` with the centre inside ``post_center_range``; then the task's NMS: circle
         (squared centre distance ``<= circle_nms_radii[t]``) or rotated (BEV IoU ``> nms_thresh`` on the first
         ``pre_max_size`` boxes, l and w scaled by ``nms_scales[t][class]``); at most ``post_max_size`` per task.
 
@@ -412,36 +456,18 @@ class CenterHead(nn.Module):
             ``labels`` ``B x (M,)`` int64 DETECTION_CLASSES indices.
         """
         cfg = self.cfg
-        cell_x, cell_y = cfg.cell_size
-        x_min, y_min = cfg.point_cloud_range[0], cfg.point_cloud_range[1]
+        missing = [name for name, _ in REGRESSION_BRANCHES if name not in cfg.trained_branches]
+        if missing:
+            raise ValueError(f"decoding boxes needs the {', '.join(missing)} branches, which this head leaves out "
+                             "(code_weights 0); centres() gives the object centres")  # fmt: skip
         batch = outputs[0]["heatmap"].shape[0]
         device = outputs[0]["heatmap"].device
-        centre_lo = torch.tensor(cfg.post_center_range[:3], device=device)
-        centre_hi = torch.tensor(cfg.post_center_range[3:], device=device)
         per_sample: list[list[tuple[Tensor, Tensor, Tensor]]] = [[] for _ in range(batch)]
         for t, out in enumerate(outputs):
-            heat = out["heatmap"].float().sigmoid()
-            _, num_classes, size_x, size_y = heat.shape
-            cells = size_x * size_y
-            k = min(cfg.max_num, num_classes * cells)
-            scores, flat = heat.reshape(batch, -1).topk(k, dim=1)  # (B, k), by decreasing score
-            cls, cell = flat // cells, flat % cells
-            ix, iy = (cell // size_y).float(), (cell % size_y).float()
-
-            def gather(name: str, out: dict[str, Tensor] = out, cell: Tensor = cell) -> Tensor:
-                maps = out[name].float().flatten(2)  # (B, C, X * Y)
-                return maps.gather(2, cell[:, None, :].expand(-1, maps.shape[1], -1))  # (B, C, k)
-
-            reg, rot = gather("reg"), gather("rot")
-            x = (ix + reg[:, 0]) * cell_x + x_min
-            y = (iy + reg[:, 1]) * cell_y + y_min
-            z = gather("height")[:, 0]
-            dims = gather("dim").exp()
+            scores, cls, cell, centres, keep = self._candidates(out, peaks=False)
+            dims, rot, vel = _gather(out["dim"], cell).exp(), _gather(out["rot"], cell), _gather(out["vel"], cell)
             yaw = torch.atan2(rot[:, 0], rot[:, 1])
-            vel = gather("vel")
-            decoded = torch.stack([x, y, z, dims[:, 0], dims[:, 1], dims[:, 2], yaw, vel[:, 0], vel[:, 1]], dim=-1)
-            centres = decoded[..., :3]
-            keep = (scores > cfg.score_threshold) & (centres >= centre_lo).all(-1) & (centres <= centre_hi).all(-1)
+            decoded = torch.cat([centres, dims.transpose(1, 2), yaw[..., None], vel.transpose(1, 2)], dim=-1)
             class_ids = torch.tensor(self.task_class_ids[t], dtype=torch.long, device=device)
             scales = torch.tensor(cfg.nms_scales[t], dtype=torch.float32, device=device)
             for b in range(batch):
@@ -454,10 +480,42 @@ class CenterHead(nn.Module):
                     bev[:, 2:4] *= scales[cls_b][:, None]
                     kept = rotated_nms(bev, score_b, cfg.nms_thresh, cfg.pre_max_size, cfg.post_max_size)
                 per_sample[b].append((box_b[kept], score_b[kept], class_ids[cls_b[kept]]))
-        out_boxes = [torch.cat([p[0] for p in parts]) for parts in per_sample]
-        out_scores = [torch.cat([p[1] for p in parts]) for parts in per_sample]
-        out_labels = [torch.cat([p[2] for p in parts]) for parts in per_sample]
-        return out_boxes, out_scores, out_labels
+        return _concatenated(per_sample)
+
+    @torch.no_grad()
+    def centres(self, outputs: list[dict[str, Tensor]]) -> tuple[list[Tensor], list[Tensor], list[Tensor]]:
+        """Object centres from the heatmap, offset and height maps alone (Panoptic-FlashOcc's ``get_centers``).
+
+        Per task: the sigmoid heatmap's peaks (a cell equal to the 3 x 3 max-pool of its class's map), the top
+        ``max_num`` of them over classes x cells, decoded and kept as :meth:`decode` does (score above
+        ``score_threshold``, centre inside ``post_center_range``). No box NMS: the max-pool is the suppression.
+
+        Returns:
+            ``centres`` ``B x (M, 3)`` float32 (x, y, z), ``scores`` ``B x (M,)`` and ``labels`` ``B x (M,)`` int64
+            DETECTION_CLASSES indices, by decreasing score within each task, tasks in order.
+        """
+        if not {"reg", "height"} <= set(self.cfg.trained_branches):
+            raise ValueError("centres need the reg and height branches, which this head leaves out (code_weights 0)")
+        batch = outputs[0]["heatmap"].shape[0]
+        per_sample: list[list[tuple[Tensor, Tensor, Tensor]]] = [[] for _ in range(batch)]
+        for t, out in enumerate(outputs):
+            scores, cls, _, centres, keep = self._candidates(out, peaks=True)
+            class_ids = torch.tensor(self.task_class_ids[t], dtype=torch.long, device=scores.device)
+            for b in range(batch):
+                per_sample[b].append((centres[b, keep[b]], scores[b, keep[b]], class_ids[cls[b, keep[b]]]))
+        return _concatenated(per_sample)
+
+
+def _gather(maps: Tensor, cell: Tensor) -> Tensor:
+    """``(B, C, k)`` float32 values of ``maps (B, C, X, Y)`` at the flat cells ``(B, k)``."""
+    maps = maps.float().flatten(2)
+    return maps.gather(2, cell[:, None, :].expand(-1, maps.shape[1], -1))
+
+
+def _concatenated(per_sample: list[list[tuple[Tensor, Tensor, Tensor]]]) -> tuple[list[Tensor], list[Tensor],
+                                                                                  list[Tensor]]:  # fmt: skip
+    """Per sample, each of the three tensors of every task joined in task order."""
+    return tuple([torch.cat([part[i] for part in parts]) for parts in per_sample] for i in range(3))  # type: ignore
 
 
 def _log(value: float) -> float:

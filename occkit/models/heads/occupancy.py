@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor, nn
 
-from occkit.classes import OCC3D
+from occkit.classes import OCC3D, OCC3D_TO_OPENOCC, OPENOCC
 from occkit.geometry.grid import OCC3D_GRID
 from occkit.losses import (
     CountedVoxels,
@@ -24,8 +24,8 @@ from occkit.losses import (
 )
 from occkit.types import OccPrediction
 
-__all__ = ["OccupancyHeadConfig", "OccupancyHead", "OCC3D_CLASS_FREQUENCIES", "occupancy_prediction",
-           "column_mlp"]
+__all__ = ["OccupancyHeadConfig", "OccupancyHead", "OCC3D_CLASS_FREQUENCIES", "class_frequencies",
+           "occupancy_prediction", "column_mlp"]
 
 #: Voxel counts per Occ3D class (0..16, 17 = free) over the nuScenes train split, as BEVDet's class balance uses.
 OCC3D_CLASS_FREQUENCIES = (
@@ -53,10 +53,26 @@ class OccupancyHeadConfig:
     keep_free: float = 0.2
     """Without the mask: probability of keeping each free voxel in the loss."""
     class_balance: bool = False
-    """Weight classes by 1 / ln(frequency + 0.001) with Occ3D's training frequencies (BEVDet)."""
+    """Weight classes by 1 / ln(frequency + 0.001) with Occ3D's training frequencies (BEVDet), or their OpenOcc v2
+    form (:func:`class_frequencies`)."""
     lovasz_weight: float = 0.0
     """Weight of a Lovasz-softmax term (the IoU surrogate of OccFormer and others) over the voxels the cross-entropy
     counts, masked or all; 0 (DAOcc, FlashOcc): cross-entropy only."""
+
+
+def class_frequencies(num_classes: int, free_index: int) -> tuple[int, ...]:
+    """The training voxel counts per class that ``class_balance`` weights by: Occ3D's (18 classes, free = 17), or
+    the same voxels in OpenOcc v2's classes (17, free = 16; Occ3D's ``others`` counted as free, as the labels are
+    converted). Other classes: ValueError."""
+    if (num_classes, free_index) == (OCC3D.num_classes, OCC3D.empty_index):
+        return OCC3D_CLASS_FREQUENCIES
+    if (num_classes, free_index) == (OPENOCC.num_classes, OPENOCC.empty_index):
+        counts = [0] * OPENOCC.num_classes
+        for occ3d_id, count in enumerate(OCC3D_CLASS_FREQUENCIES):
+            counts[OCC3D_TO_OPENOCC[occ3d_id]] += count
+        return tuple(counts)
+    raise ValueError(f"class_balance knows the class frequencies of Occ3D (18 classes, free = 17) and OpenOcc v2 (17, "
+                     f"free = 16), not of {num_classes} classes with free / empty id {free_index}")  # fmt: skip
 
 
 def occupancy_prediction(logits: Tensor) -> OccPrediction:
@@ -78,9 +94,7 @@ class OccupancyHead(nn.Module):
         self.conv = nn.Sequential(nn.Conv2d(cfg.in_channels, cfg.hidden_channels, 3, padding=1), nn.ReLU(inplace=True))
         self.predictor = column_mlp(cfg.hidden_channels, cfg.height * cfg.num_classes)
         if cfg.class_balance:
-            if cfg.num_classes != len(OCC3D_CLASS_FREQUENCIES):
-                raise ValueError(f"class_balance uses Occ3D's 18 class frequencies, not {cfg.num_classes} classes")
-            weights = class_weights_from_frequencies(OCC3D_CLASS_FREQUENCIES)
+            weights = class_weights_from_frequencies(class_frequencies(cfg.num_classes, cfg.free_index))
             self.register_buffer("class_weights", weights, persistent=False)
         else:
             self.class_weights = None
