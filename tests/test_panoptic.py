@@ -138,3 +138,38 @@ def test_a_panoptic_flashocc_predicts_instances_and_is_scored_with_raypq(world, 
     assert {"raypq", "raypq@1", "raypq@2", "raypq@4", "rayiou"} <= set(result)
     with np.load(next(tmp_path.glob("*.npz"))) as archive:
         assert archive["instances"].shape == (200, 200, 16)
+
+
+def test_daocc_becomes_panoptic_from_its_detection_head(world):
+    from occkit.models.daocc import DAOccConfig
+
+    experiment = zoo.experiment("daocc_tiny")
+    data = dataclasses.replace(experiment.data, root=str(world), split="all", cameras=CAMERAS, augment=False,
+                               instances=True)  # fmt: skip
+    batch = collate([OccupancyDataset(data)[0]])
+    torch.manual_seed(0)
+    model = zoo.build_from_config("daocc", dataclasses.replace(experiment.model, panoptic=True)).eval()
+    with torch.no_grad():
+        for head in model.detection_head.task_heads:  # every cell a candidate centre
+            head.branches["heatmap"][-1].bias.fill_(5.0)
+        prediction = model.predict(batch)
+    assert prediction.instances is not None and prediction.instances.shape == (1, 200, 200, 16)
+    stuff = ~torch.isin(prediction.semantics, torch.tensor([OCC3D.index(n) for n in ("car", "truck", "bus",
+                        "construction_vehicle", "trailer", "motorcycle", "bicycle", "pedestrian")]))  # fmt: skip
+    assert not prediction.instances[stuff].any()
+    with pytest.raises(ValueError, match="detection is None"):
+        DAOccConfig(detection=None, panoptic=True)
+
+
+def test_a_checkpoint_loads_under_other_prediction_settings_only():
+    from occkit.config import to_dict
+    from occkit.engine.checkpoint import check_compatible
+
+    experiment = zoo.experiment("daocc_tiny")
+    payload = {"architecture": "daocc", "experiment": experiment.to_dict()}
+    model = experiment.model
+    decoding = dataclasses.replace(model, panoptic=True,
+                                   detection=dataclasses.replace(model.detection, score_threshold=0.3))  # fmt: skip
+    check_compatible(payload, "daocc", to_dict(decoding), "step.pt")  # the same weights predict differently
+    with pytest.raises(ValueError, match="detection_loss_weight"):
+        check_compatible(payload, "daocc", to_dict(dataclasses.replace(model, detection_loss_weight=0.1)), "step.pt")

@@ -25,6 +25,7 @@ import torch
 from occkit.config import MISSING, leaf_differences, to_dict
 from occkit.data.dataset import DatasetConfig
 from occkit.experiment import TrainConfig
+from occkit.models.heads.center import DECODING_FIELDS
 from occkit.outputs import fsync_folder, write_atomic
 from occkit.weight_files import check_finite, load_torch_file
 from occkit.zoo import config_class
@@ -146,13 +147,18 @@ def load_checkpoint(path: str | Path, map_location: str | torch.device = "cpu") 
 #: Experiment keys that change no weight, so a resumed run may change them without ``allow``.
 BOOKKEEPING_KEYS = ("train.workers", "train.log_every", "train.keep_last", "train.checkpoint_every")
 
+#: Model keys that change what the same weights predict, not the weights (DAOcc's panoptic output from its detection
+#: head, the centre heads' decoding thresholds): a checkpoint is loaded under any value of them.
+PREDICTION_KEYS = ("model.panoptic",) + tuple(f"model.{head}.{name}" for head in ("detection", "instances")
+                                              for name in DECODING_FIELDS)
+
 
 def check_compatible(payload: dict[str, Any], architecture: str, model_config: dict, path: str | Path) -> None:
     """Raise ``ValueError`` naming the first difference when a checkpoint holds another model or config."""
     if payload["architecture"] != architecture:
         raise ValueError(f"{path} holds a {payload['architecture']} model, not {architecture}")
     saved = _fill(payload["experiment"]["model"], _defaults(architecture)["model"])
-    differences = leaf_differences(saved, model_config, "model")
+    differences = [d for d in leaf_differences(saved, model_config, "model") if d[0] not in PREDICTION_KEYS]
     if differences:
         raise ValueError(f"{path} was trained with another model config: {_describe(differences[0])}"
                          + (f" (and {len(differences) - 1} more differences)" if len(differences) > 1 else ""))

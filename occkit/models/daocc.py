@@ -28,7 +28,8 @@ from occkit.models.base import Architecture, CameraInputs, Deployment, Occupancy
 from occkit.models.bev_encoder import BevEncoder, BevEncoderConfig, ConvFuser
 from occkit.models.heads.center import CenterHead, CenterHeadConfig
 from occkit.models.heads.flow import FlowHead, FlowHeadConfig, check_motion_input
-from occkit.models.heads.occupancy import OccupancyHead, OccupancyHeadConfig, occupancy_prediction
+from occkit.models.heads.occupancy import OccupancyHead, OccupancyHeadConfig
+from occkit.models.heads.panoptic import assign_instances
 from occkit.models.image_encoder import ImageEncoder, ImageEncoderConfig
 from occkit.models.lidar_encoder import LidarEncoder, LidarEncoderConfig
 from occkit.models.range_extension import RangeExtension, RangeExtensionConfig
@@ -69,6 +70,11 @@ class DAOccConfig:
     """Auxiliary CenterPoint head (training only); None removes it."""
     detection_loss_weight: float = 0.01
     """Weight of the detection losses in the total loss."""
+    panoptic: bool = False
+    """Also predict each voxel's instance (panoptic occupancy): the detection head's object centres (its heatmap's
+    peaks with offset and height, read as Panoptic-FlashOcc reads its centre head) moved into the occupancy frame,
+    every voxel of a thing class joined to the nearest centre of its class. Needs ``detection``; training is
+    unchanged, so a trained DAOcc becomes panoptic at prediction (``--set model.panoptic=true``)."""
 
     @property
     def sensors(self) -> tuple[str, ...]:
@@ -105,6 +111,8 @@ class DAOccConfig:
         if self.detection is not None:
             expected["detection.in_channels"] = (self.detection.in_channels, self.bev.neck_channels,
                                                  "bev.neck_channels")
+        elif self.panoptic:
+            raise ValueError("panoptic = true takes its object centres from the detection head; detection is None")
         for key, (value, wanted, source) in expected.items():
             if value != wanted:
                 raise ValueError(f"{key} = {value} must equal {source} = {wanted}")
@@ -237,14 +245,22 @@ class DAOcc(OccupancyModel):
 
     @torch.no_grad()
     def predict(self, batch: Batch, boxes: bool = False) -> OccPrediction:
-        """Class ids ``(B, X, Y, Z)`` uint8 and, with ``boxes``, decoded detections in the augmented LiDAR frame."""
-        output = self.forward(batch, detect=boxes)
-        prediction = occupancy_prediction(output.occupancy)
-        prediction.flow = output.flow
+        """Class ids ``(B, X, Y, Z)`` uint8, with ``panoptic`` each voxel's instance, and with ``boxes`` decoded
+        detections in the augmented LiDAR frame."""
+        panoptic = self.cfg.panoptic and self.detection_head is not None
+        output = self.forward(batch, detect=boxes or panoptic)
+        prediction = self.prediction(output)
         if boxes and output.detection is not None:
             prediction.boxes, prediction.box_scores, prediction.box_labels = self.detection_head.decode(
                 output.detection
             )
+        if panoptic:
+            centres, _, labels = self.detection_head.centres(output.detection)  # augmented LiDAR frame
+            to_occupancy = invert_transform(self.range_extension.to_bev_frame(batch.lidar2ego, batch.bev_aug,
+                                                                              batch.occ_aug).double())  # fmt: skip
+            centres = [(c.double() @ m[:3, :3].T + m[:3, 3]).float()
+                       for c, m in zip(centres, to_occupancy, strict=True)]  # fmt: skip
+            prediction.instances = assign_instances(prediction.semantics, centres, labels, self.cfg.output_grid)
         return prediction
 
 

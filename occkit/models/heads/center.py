@@ -39,7 +39,8 @@ from occkit.classes import DETECTION_CLASSES
 from occkit.losses import gaussian_focal_loss, weighted_l1_loss
 from occkit.models.heads.box_ops import circle_nms, draw_gaussian, gaussian_radius, rotated_nms
 
-__all__ = ["CenterHeadConfig", "CenterHead", "SeparateHead", "TaskTargets", "REGRESSION_BRANCHES", "CODE_SIZE"]
+__all__ = ["CenterHeadConfig", "CenterHead", "SeparateHead", "TaskTargets", "REGRESSION_BRANCHES", "CODE_SIZE",
+           "DECODING_FIELDS"]
 
 #: Regression branches of every task head and their output channels, in the order of the regression target.
 REGRESSION_BRANCHES: tuple[tuple[str, int], ...] = (("reg", 2), ("height", 1), ("dim", 3), ("rot", 2), ("vel", 2))
@@ -47,6 +48,10 @@ REGRESSION_BRANCHES: tuple[tuple[str, int], ...] = (("reg", 2), ("height", 1), (
 CODE_SIZE = sum(channels for _, channels in REGRESSION_BRANCHES)
 
 _NMS_TYPES = ("circle", "rotate")
+
+#: The :class:`CenterHeadConfig` fields that only decoding reads (boxes, centres): the same weights serve any value.
+DECODING_FIELDS = ("score_threshold", "post_center_range", "max_num", "nms_types", "nms_thresh", "pre_max_size",
+                   "post_max_size", "circle_nms_radii", "nms_scales")
 
 
 @dataclass(frozen=True)
