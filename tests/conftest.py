@@ -161,6 +161,16 @@ def synthetic_batch():
 
 
 @pytest.fixture(scope="session")
+def small_world(synthetic_world) -> Path:
+    """2 scenes x 2 key frames, 2 cameras at 176 x 99, a sparse world, with OpenOcc v2 labels beside Occ3D's: the
+    world the flow, panoptic, OpenOcc and viz tests share (scene-0002 is the val split). Read only."""
+    from occkit.sim.world import WorldConfig
+
+    return synthetic_world(scenes=2, frames=2, seed=3, image_size=(176, 99), cameras=("CAM_FRONT", "CAM_BACK"),
+                           openocc=True, world=WorldConfig(density=0.5))  # fmt: skip
+
+
+@pytest.fixture(scope="session")
 def synthetic_world(tmp_path_factory):
     """Factory: ``synthetic_world(**settings)`` -> the root of a world simulated with ``SimConfig(**settings)``, once
     per session for each set of settings. The world is shared: read it only. ``synthetic_world(copy_to=path,

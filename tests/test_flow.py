@@ -25,7 +25,6 @@ from occkit.metrics.evaluate import evaluate_predictions, read_prediction_flow, 
 from occkit.metrics.rayiou import FLOW_CLASSES, cast_rays_exact, occ_score, rayiou
 from occkit.models.deployment import deploy
 from occkit.models.heads.flow import FlowHead, FlowHeadConfig, MotionConfig, MotionEncoder
-from occkit.sim.generate import SimConfig, simulate_dataset
 from occkit.sim.labels import occupancy_flow_labels, occupancy_labels
 from occkit.sim.world import WorldConfig, generate_world
 
@@ -34,11 +33,8 @@ FREE = OCC3D.empty_index
 
 
 @pytest.fixture(scope="module")
-def world_root(tmp_path_factory) -> Path:
-    root = tmp_path_factory.mktemp("flow") / "data"
-    simulate_dataset(SimConfig(scenes=2, frames=2, seed=3, image_size=(176, 99), cameras=("CAM_FRONT", "CAM_BACK"),
-                               world=WorldConfig(density=0.5)), root)  # fmt: skip
-    return root
+def world_root(small_world) -> Path:
+    return small_world
 
 
 def _config(root: Path, **changes) -> DatasetConfig:

@@ -28,11 +28,8 @@ REPO = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(scope="module")
-def world(synthetic_world) -> Path:
-    from occkit.sim.world import WorldConfig
-
-    return synthetic_world(scenes=2, frames=2, seed=3, image_size=(176, 99), cameras=CAMERAS, openocc=True,
-                           world=WorldConfig(density=0.5))  # fmt: skip
+def world(small_world) -> Path:
+    return small_world
 
 
 def _to_openocc(semantics: np.ndarray) -> np.ndarray:
@@ -58,7 +55,7 @@ def test_the_classes_are_the_challenges_and_map_from_occ3d_by_name():
         class_frequencies(5, 4)
 
 
-def test_the_world_writes_openocc_labels_beside_occ3d(world):
+def test_the_world_writes_openocc_labels_beside_occ3d(world, tmp_path):
     occ3d = sorted((world / "gts").glob("*/*/labels.npz"))
     openocc = sorted((world / "openocc_v2").glob("*/*/labels.npz"))
     assert len(occ3d) == len(openocc) == 4
@@ -72,7 +69,7 @@ def test_the_world_writes_openocc_labels_beside_occ3d(world):
         np.testing.assert_array_equal(labels.semantics, _to_openocc(gt.semantics))
         np.testing.assert_array_equal(labels.flow, gt.flow)
     # An Occ3D file read as OpenOcc: ids beyond 0..16 are named.
-    bad = world.parent / "bad.npz"
+    bad = tmp_path / "bad.npz"
     write_openocc_labels(bad, np.full((200, 200, 16), 17, np.uint8), np.zeros((200, 200, 16, 2), np.float32))
     with pytest.raises(LabelError, match=r"beyond 0\.\.16 of openocc"):
         read_openocc_labels(bad)

@@ -25,11 +25,8 @@ CAR, TRUCK, ROAD, FREE = (OCC3D.index(name) for name in ("car", "truck", "drivea
 
 
 @pytest.fixture(scope="module")
-def world(synthetic_world) -> Path:
-    from occkit.sim.world import WorldConfig
-
-    return synthetic_world(scenes=2, frames=2, seed=3, image_size=(176, 99), cameras=CAMERAS,
-                           world=WorldConfig(density=0.5))  # fmt: skip
+def world(small_world) -> Path:
+    return small_world
 
 
 def _centre(ix: int, iy: int, iz: int) -> list[float]:

@@ -270,15 +270,9 @@ def test_palette_png_keeps_class_colours_exact(tmp_path):
 
 # ------------------------------------------------------------------------------------------------------ CLI
 @pytest.fixture(scope="module")
-def data(tmp_path_factory) -> Path:
+def data(small_world) -> Path:
     """2 scenes x 2 key frames, 2 cameras at 176 x 99: scene-0002 is the val split."""
-    from occkit.sim.generate import SimConfig, simulate_dataset
-    from occkit.sim.world import WorldConfig
-
-    root = tmp_path_factory.mktemp("viz") / "data"
-    simulate_dataset(SimConfig(scenes=2, frames=2, seed=3, image_size=(176, 99), cameras=("CAM_FRONT", "CAM_BACK"),
-                               world=WorldConfig(density=0.5)), root)  # fmt: skip
-    return root
+    return small_world
 
 
 def _val_gts(root: Path) -> dict[str, Path]:
