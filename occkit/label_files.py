@@ -13,7 +13,9 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["save_npz", "write_occ3d_labels", "write_openocc_labels", "write_surroundocc_labels"]
+from occkit.classes import IGNORE_INDEX, OCC3D_TO_OPENOCC
+
+__all__ = ["save_npz", "write_occ3d_labels", "occ3d_to_openocc", "write_openocc_labels", "write_surroundocc_labels"]
 
 
 def save_npz(path: str | Path, compressed: bool = True, **arrays: np.ndarray) -> None:
@@ -67,6 +69,14 @@ def write_occ3d_labels(
         arrays["instance_ids"] = np.array(list(tokens), dtype=np.int32)
         arrays["instance_tokens"] = np.array(list(tokens.values()), dtype="<U64")
     save_npz(path, **arrays)
+
+
+def occ3d_to_openocc(semantics: np.ndarray) -> np.ndarray:
+    """Occ3D class ids (any shape) as OpenOcc v2's, uint8 (:data:`~occkit.classes.OCC3D_TO_OPENOCC`: by class name,
+    ``others`` becoming free); ignored voxels (255) stay ignored."""
+    table = np.full(256, IGNORE_INDEX, np.uint8)
+    table[: len(OCC3D_TO_OPENOCC)] = OCC3D_TO_OPENOCC
+    return table[np.asarray(semantics, np.uint8)]
 
 
 def write_openocc_labels(path: str | Path, semantics: np.ndarray, flow: np.ndarray) -> None:

@@ -17,7 +17,7 @@ from occkit.classes import OCC3D, OCC3D_TO_OPENOCC, OPENOCC
 from occkit.data.dataset import DatasetConfig, OccupancyDataset
 from occkit.data.labels import LabelError, read_occ3d_labels, read_openocc_labels
 from occkit.engine.evaluate import dataset_ray_origins, evaluate_model
-from occkit.label_files import write_openocc_labels
+from occkit.label_files import occ3d_to_openocc, write_openocc_labels
 from occkit.label_space import OPENOCC_SPACE, label_space
 from occkit.metrics.evaluate import evaluate_predictions, write_prediction
 from occkit.metrics.rayiou import rayiou
@@ -30,12 +30,6 @@ REPO = Path(__file__).resolve().parents[1]
 @pytest.fixture(scope="module")
 def world(small_world) -> Path:
     return small_world
-
-
-def _to_openocc(semantics: np.ndarray) -> np.ndarray:
-    table = np.full(256, 255, np.uint8)
-    table[: len(OCC3D_TO_OPENOCC)] = OCC3D_TO_OPENOCC
-    return table[semantics]
 
 
 def test_the_classes_are_the_challenges_and_map_from_occ3d_by_name():
@@ -66,7 +60,7 @@ def test_the_world_writes_openocc_labels_beside_occ3d(world, tmp_path):
         gt = read_occ3d_labels(gt_path, flow=True)
         labels = read_openocc_labels(path, flow=True)
         assert labels.mask_camera is None and labels.mask_lidar is None
-        np.testing.assert_array_equal(labels.semantics, _to_openocc(gt.semantics))
+        np.testing.assert_array_equal(labels.semantics, occ3d_to_openocc(gt.semantics))
         np.testing.assert_array_equal(labels.flow, gt.flow)
     # An Occ3D file read as OpenOcc: ids beyond 0..16 are named.
     bad = tmp_path / "bad.npz"
@@ -89,8 +83,8 @@ def test_rayiou_on_openocc_labels_is_occ3ds_by_class_name(world):
     flows = [g.flow for g in grids]
     pred_flows = [np.roll(f, 1, axis=0) * 0.5 for f in flows]
     occ3d = rayiou(gts, preds, origins, flows, pred_flows)
-    openocc = rayiou([_to_openocc(g) for g in gts], [_to_openocc(p) for p in preds], origins, flows, pred_flows,
-                     space=OPENOCC_SPACE)  # fmt: skip
+    openocc = rayiou([occ3d_to_openocc(g) for g in gts], [occ3d_to_openocc(p) for p in preds], origins, flows,
+                     pred_flows, space=OPENOCC_SPACE)  # fmt: skip
     for threshold in (1, 2, 4):
         for name in OPENOCC.classes[:-1]:
             a = occ3d["per_class"][threshold][OCC3D.index(name)]

@@ -535,10 +535,10 @@ class OccupancyDataset(torch.utils.data.Dataset):
         names, valid = record.box_detection_names, record.box_valid
         only_valid = self.config.valid_boxes_only
         keep = [i for i, name in enumerate(names) if name is not None and (valid[i] or not only_valid)]
-        boxes = torch.from_numpy(np.asarray(record.boxes_lidar, dtype=np.float32)[keep].reshape(-1, 9))
-        if self.config.box_frame == "ego":
-            boxes = torch.from_numpy(np.asarray(record.boxes_ego, dtype=np.float32)[keep].reshape(-1, 9))
-        sample.boxes = augment_boxes(boxes, sample.occ_aug if self.config.box_frame == "ego" else sample.bev_aug)
+        source, aug = (record.boxes_ego, sample.occ_aug) if self.config.box_frame == "ego" else \
+            (record.boxes_lidar, sample.bev_aug)  # fmt: skip
+        boxes = torch.from_numpy(np.asarray(source, dtype=np.float32)[keep].reshape(-1, 9))
+        sample.boxes = augment_boxes(boxes, aug)
         sample.box_labels = torch.tensor(
             [DETECTION_CLASSES.index(record.box_detection_names[i]) for i in keep], dtype=torch.int64
         )

@@ -9,7 +9,7 @@ silent mistakes (a wrong shape, a float mask, a SurroundOcc file read as Occ3D) 
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -22,7 +22,7 @@ from occkit.geometry.grid import OCC3D_GRID, SURROUNDOCC_GRID, VoxelGrid
 from occkit.label_space import LabelSpace
 
 __all__ = ["LabelError", "OccupancyLabels", "MAX_FLOW_SPEED", "read_occ3d_labels", "read_openocc_labels", "check_flow",
-           "read_surroundocc_labels", "label_file", "has_instances", "read_labels"]
+           "read_surroundocc_labels", "label_file", "carry_instances", "read_labels"]
 
 #: The fastest occupancy flow (m/s) a label or prediction may hold: faster than anything on a road (the simulator's
 #: ego drives at most 40 m/s), and far from where sums of errors overflow float32.
@@ -220,13 +220,19 @@ def label_file(space: LabelSpace, folder: str | Path, scene: str, token: str, li
                       str(folder))  # fmt: skip
 
 
-def has_instances(path: str | Path) -> bool:
-    """Whether a ``labels.npz`` carries panoptic instance ids (the synthetic world's do; Occ3D's do not)."""
-    try:
-        with NpzArchive(Path(path), "labels", str(path), LabelError) as archive:
-            return "instances" in archive
-    except (OSError, LabelError):
+def carry_instances(space: LabelSpace, paths: Iterable[str | Path]) -> bool:
+    """Whether every label file of ``paths`` (of ``space``) carries panoptic instance ids: only Occ3D-layout files
+    can, and of those the synthetic world's do (Occ3D's own do not). An unreadable file counts as not."""
+    if space.name != "occ3d":
         return False
+    for path in paths:
+        try:
+            with NpzArchive(Path(path), "labels", str(path), LabelError) as archive:
+                if "instances" not in archive:
+                    return False
+        except (OSError, LabelError):
+            return False
+    return True
 
 
 def read_labels(space: LabelSpace, path: str | Path, token: str | None = None, flow: bool = False,

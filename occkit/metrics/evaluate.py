@@ -128,7 +128,7 @@ def read_prediction(path: str | Path, space: LabelSpace | str = OCC3D_SPACE) -> 
         ValueError: unreadable file, no known key, wrong shape, non-integer dtype or ids outside the space's classes;
             the message names the file.
     """
-    return _read_prediction(Path(path), label_space(space), flow=False).grid
+    return _read_prediction(Path(path), label_space(space), extras=False).grid
 
 
 def read_prediction_instances(path: str | Path, space: LabelSpace | str = OCC3D_SPACE) -> np.ndarray | None:
@@ -137,7 +137,7 @@ def read_prediction_instances(path: str | Path, space: LabelSpace | str = OCC3D_
     Raises:
         ValueError: unreadable file, or instances of the wrong shape or dtype.
     """
-    return _read_prediction(Path(path), label_space(space), flow=True).instances
+    return _read_prediction(Path(path), label_space(space), extras=True).instances
 
 
 def read_prediction_flow(path: str | Path, space: LabelSpace | str = OCC3D_SPACE) -> np.ndarray | None:
@@ -147,7 +147,7 @@ def read_prediction_flow(path: str | Path, space: LabelSpace | str = OCC3D_SPACE
         ValueError: unreadable file, or a flow of the wrong shape or dtype, not finite, or faster than
             :data:`~occkit.data.labels.MAX_FLOW_SPEED`.
     """
-    return _read_prediction(Path(path), label_space(space), flow=True).flow
+    return _read_prediction(Path(path), label_space(space), extras=True).flow
 
 
 class _Prediction(NamedTuple):
@@ -162,9 +162,10 @@ class _Prediction(NamedTuple):
     """Panoptic instance ids (key ``instances``, integer, the grid's shape; 0: no instance)."""
 
 
-def _read_prediction(path: Path, space: LabelSpace, flow: bool) -> _Prediction:
-    """The grid (and with ``flow`` the flow) of a prediction file, each array's shape and dtype checked from its
-    header before its data is read: a file declaring a larger array than the grid costs no memory."""
+def _read_prediction(path: Path, space: LabelSpace, extras: bool) -> _Prediction:
+    """The grid (and with ``extras`` the flow and the instances, where the file holds them) of a prediction file, each
+    array's shape and dtype checked from its header before its data is read: a file declaring a larger array than the
+    grid costs no memory."""
     try:
         with NpzArchive(path, "prediction") as archive:
             keys = tuple(key for key in PRED_KEYS if key in archive)
@@ -172,9 +173,9 @@ def _read_prediction(path: Path, space: LabelSpace, flow: bool) -> _Prediction:
                 raise ValueError(f"{path}: has none of the keys {', '.join(PRED_KEYS)} "
                                  f"(keys: {', '.join(archive.keys) or 'none'})")  # fmt: skip
             grid = archive.read(keys[0], _grid_check(path, keys[0], space))
-            pred_flow = archive.read("flow", _flow_check(path, space)) if flow and "flow" in archive else None
+            pred_flow = archive.read("flow", _flow_check(path, space)) if extras and "flow" in archive else None
             instances = archive.read("instances", _instance_check(path, space)) \
-                if flow and "instances" in archive else None  # fmt: skip
+                if extras and "instances" in archive else None  # fmt: skip
     except FileNotFoundError:
         raise ValueError(f"{path}: prediction file not found") from None
     except OSError as error:
@@ -196,14 +197,6 @@ def _instance_check(path: Path, space: LabelSpace) -> Callable[[NpyHeader], None
                              f"{header.shape}")  # fmt: skip
 
     return check
-
-
-def read_instances(path: Path, space: LabelSpace) -> np.ndarray:
-    """The panoptic instance ids of a ground-truth ``labels.npz`` (key ``instances``, as ``occkit sim`` writes)."""
-    with NpzArchive(path, "labels") as archive:
-        if "instances" not in archive:
-            raise ValueError(f"{path}: has no instances: RayPQ needs panoptic labels (occkit sim writes them)")
-        return archive.read("instances", _instance_check(path, space))
 
 
 def _grid_check(path: Path, key: str, space: LabelSpace) -> Callable[[NpyHeader], None]:
@@ -267,11 +260,11 @@ def _score_frame(
     # A frame without a prediction (allowed by the caller) is scored as if everything were predicted free.
     if pred_path is None:
         prediction = _Prediction(np.full(space.grid.shape, space.free_index, np.uint8), None, ())
-    else:  # flow is only read where it is scored: RayIoU's velocity errors
-        prediction = _read_prediction(pred_path, space, flow=origins is not None)
+    else:  # flow and instances are only read where they are scored: on RayIoU's rays
+        prediction = _read_prediction(pred_path, space, extras=origins is not None)
     pred, pred_flow = prediction.grid, prediction.flow
     scored_flow = pred_flow is not None and origins is not None
-    labels = read_labels(space, gt_path, token, flow=scored_flow)
+    labels = read_labels(space, gt_path, token, flow=scored_flow, instances=prediction.instances is not None)
     metric = OccupancyMetric.for_space(space, mask)
     metric.update(labels.semantics, pred, labels.mask_camera, labels.mask_lidar)
     if origins is None:
@@ -283,7 +276,7 @@ def _score_frame(
         raise ValueError(f"sample {token}: RayIoU failed ({error})") from error
     if prediction.instances is not None:  # panoptic: RayPQ on the same rays
         panoptic = RayPQCounts()
-        panoptic.add_frame(labels.semantics, pred, read_instances(gt_path, space), prediction.instances, origins)
+        panoptic.add_frame(labels.semantics, pred, labels.instances, prediction.instances, origins)
         counts["raypq"] = panoptic
     return metric.confusion, counts, prediction.keys
 

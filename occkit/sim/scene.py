@@ -16,10 +16,9 @@ from typing import NamedTuple
 
 import numpy as np
 
-from occkit.classes import IGNORE_INDEX, OCC3D_TO_OPENOCC
 from occkit.geometry.grid import OCC3D_GRID, SURROUNDOCC_GRID
 from occkit.geometry.visibility import camera_visibility, lidar_visibility
-from occkit.label_files import write_occ3d_labels, write_openocc_labels, write_surroundocc_labels
+from occkit.label_files import occ3d_to_openocc, write_occ3d_labels, write_openocc_labels, write_surroundocc_labels
 from occkit.nuscenes import CAMERAS
 from occkit.sim.config import (
     FIRST_TIMESTAMP_US,
@@ -380,10 +379,8 @@ def simulate_scene(config: SimConfig, index: int, root: Path, progress: Callable
         with timer("write"):
             write_occ3d_labels(scene.root / gt_path, semantics, mask_lidar, mask_camera, flow, instances,
                                instance_tokens)  # fmt: skip
-            if config.openocc:  # the same voxels in OpenOcc's classes (its id of each Occ3D id; ignored stays so)
-                openocc = np.full(256, IGNORE_INDEX, np.uint8)
-                openocc[: len(OCC3D_TO_OPENOCC)] = OCC3D_TO_OPENOCC
-                openocc = openocc[semantics]
+            if config.openocc:  # the same voxels in OpenOcc's classes
+                openocc = occ3d_to_openocc(semantics)
                 write_openocc_labels(scene.root / f"openocc_v2/{scene.name}/{sample_token}/labels.npz", openocc, flow)
             if config.surroundocc:
                 lidar_file = Path(key_sweep.filename).name

@@ -49,7 +49,7 @@ from PIL import Image
 from occkit.classes import DETECTION_CLASSES
 from occkit.data.collate import collate
 from occkit.data.dataset import DatasetConfig, OccupancyDataset
-from occkit.data.labels import has_instances
+from occkit.data.labels import carry_instances
 from occkit.label_space import OCC3D_SPACE, LabelSpace, label_space
 from occkit.nuscenes import CAMERAS
 from occkit.types import Batch
@@ -515,7 +515,7 @@ def open_scene(config: ViewConfig) -> Scene:
     records = [listing.records[i] for i in indices]
     cameras = tuple(camera for camera in CAMERAS if camera in records[0].cameras)
     labelled = all(listing.label_path(record).is_file() for record in records)
-    panoptic = labelled and space.name == "occ3d" and all(has_instances(listing.label_path(r)) for r in records)
+    panoptic = labelled and carry_instances(space, (listing.label_path(record) for record in records))
     # The key frame's points only (sweeps=0): what the LiDAR saw at the frame's time.
     dataset = OccupancyDataset(DatasetConfig(**common, cameras=cameras, sweeps=0, occupancy=labelled, boxes=True,
                                              instances=panoptic))  # fmt: skip

@@ -23,7 +23,7 @@ from PIL import Image
 
 from occkit.data.dataset import DatasetConfig, OccupancyDataset
 from occkit.data.index import FrameRecord
-from occkit.data.labels import has_instances
+from occkit.data.labels import carry_instances
 from occkit.data.names import path_under, safe_name
 from occkit.data.transforms import ImageAugConfig, augment_image, sample_image_aug
 from occkit.figure import MIN_PALETTE_COLORS, save_figure
@@ -278,7 +278,7 @@ def render_frames(config: VizConfig, progress: Callable[[str], None] = print) ->
     image_aug = _display_transform(root / records[0].cameras[cameras[0]].path, config.display_width) if cameras \
         else ImageAugConfig()  # fmt: skip
     labelled = all(listing.label_path(records[i]).is_file() for i in picks)
-    panoptic = labelled and space.name == "occ3d" and all(has_instances(listing.label_path(records[i])) for i in picks)
+    panoptic = labelled and carry_instances(space, (listing.label_path(records[i]) for i in picks))
     dataset = OccupancyDataset(DatasetConfig(**common, cameras=cameras, sweeps=config.sweeps, occupancy=labelled,
                                              instances=panoptic, image_aug=image_aug))  # fmt: skip
     if config.pred is not None:
