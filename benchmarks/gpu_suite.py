@@ -10,7 +10,8 @@ For each model (default :data:`MODELS`, the paper entries the papers report spee
   the same-run GEMM peak at that precision and the fraction reached, stage times; with ``--compile`` also the
   fast path with ``torch.compile`` at fp16 (CUDA graphs on a GPU);
 * **agreement**: the arg-max of the occupancy logits under fp16 / bf16 autocast against fp32, on that frame, over
-  every voxel (random weights, or the shipped ones for a CPU-sized entry that has them);
+  every voxel (random weights, or the shipped ones for a CPU-sized entry that has them), and of the fp32 network
+  replayed from a CUDA graph;
 * **training**: the entry's own training step at its per-GPU batch and precision (AdamW, autocast and a gradient
   scaler for fp16), fed by a ``DataLoader`` with ``--workers`` processes reading and augmenting the synthetic world's
   1600 x 900 JPEGs: median step time, samples per second, peak memory, and the share of each step spent waiting for
@@ -28,6 +29,7 @@ every number in ``docs/results/gpu/`` comes from a run on the device it names.
 from __future__ import annotations
 
 import argparse
+import copy
 import dataclasses
 import json
 import math
@@ -48,6 +50,8 @@ from occkit.data.dataset import OccupancyDataset
 from occkit.data.loader import sample_loader
 from occkit.engine.reference_frame import simulate_reference_world
 from occkit.machine import gpu_driver
+from occkit.models.inference import prepare_for_inference
+from occkit.models.sparse import spconv
 from occkit.shipped import shipped_entries
 
 MODELS = ("flashocc_m0", "flashocc_m1", "da_occ", "da_occ_16f", "daocc", "daocc_no_detection")
@@ -68,7 +72,8 @@ def _synchronize(device: torch.device) -> None:
 
 
 def agreement(entry: str, device: torch.device, data: Path | None) -> dict[str, float]:
-    """Share of voxels whose arg-max class under each reduced-precision autocast equals fp32's, on the bench frame."""
+    """Share of voxels whose arg-max class under each reduced-precision autocast equals fp32's, on the bench frame;
+    on CUDA also the fp32 network replayed from a CUDA graph (a camera model's ``cuda_graph`` fast path)."""
     weights = "synthetic" if entry in shipped_entries() else None
     torch.manual_seed(0)
     model = zoo.build(entry, weights=weights).to(device).eval()
@@ -81,7 +86,16 @@ def agreement(entry: str, device: torch.device, data: Path | None) -> dict[str, 
             with torch.autocast(device.type, dtype=dtype):
                 predicted = model(batch).occupancy.float().argmax(dim=1)
             shares[precision] = float((predicted == reference).float().mean())
+        if device.type == "cuda" and not _sparse(model):
+            graphed = prepare_for_inference(copy.deepcopy(model), ("fixed_calibration", "cuda_graph"))
+            for _ in range(2):  # the capture, then a replay
+                predicted = graphed(batch).occupancy.argmax(dim=1)
+            shares["fp32_cuda_graph"] = float((predicted == reference).float().mean())
     return {"weights": weights or "random", **shares}
+
+
+def _sparse(model: torch.nn.Module) -> bool:
+    return any(isinstance(m, spconv.SparseModule) for m in model.modules())
 
 
 def training_throughput(entry: str, device: torch.device, root: Path, steps: int, warmup: int, workers: int) -> dict:
@@ -202,6 +216,13 @@ def run_model(entry: str, args: argparse.Namespace, device: torch.device, train_
                           stage_iters=1 if quick else 3, gemm_size=256 if quick else None,
                           gemm_repeats=1 if quick else 3, data=args.data)  # fmt: skip
         _section(result["inference"], precision, partial(run_bench, cfg, log=log))
+    if args.graphs is not None and (not args.graphs or entry in args.graphs):
+        for precision in _precisions(device):
+            cfg = BenchConfig(model=entry, device=str(device), precision=precision, iters=1 if quick else 20,
+                              warmup=1 if quick else 5, stage_iters=1 if quick else 3,
+                              gemm_size=256 if quick else None, gemm_repeats=1 if quick else 3, data=args.data,
+                              optimizations=("fixed_calibration", "fold_bn", "cuda_graph"))  # fmt: skip
+            _section(result["inference"], f"{precision}_cuda_graph", partial(run_bench, cfg, log=log))
     if args.compile is not None and (not args.compile or entry in args.compile):
         cfg = BenchConfig(model=entry, device=str(device), precision="fp16" if device.type == "cuda" else "fp32",
                           iters=1 if quick else 20, warmup=1 if quick else 5, gemm_size=256 if quick else None,
@@ -249,14 +270,16 @@ def summary(result: dict) -> str:
     for precision, bench in result["inference"].items():
         if precision == "errors":
             continue
-        if precision == "compiled" and "compile" not in bench["fast_path"]["applied"]:
-            steps = bench["fast_path"]["steps"]
-            error = next(step.get("error", "") for step in steps if step["optimization"] == "compile")
-            lines.append(f"  compiled: compilation failed, {error[:100]}")
+        skipped = [step for step in bench["fast_path"]["steps"] if not step["kept"]]
+        if skipped:  # a compile or cuda_graph the row asked for failed: the row would time something else
+            lines.append(f"  {precision}: {skipped[0]['optimization']} failed, {skipped[0].get('error', '')[:100]}")
             continue
         memory = bench["peak_memory"]["bytes"] / 2**20
+        streamed = bench.get("streaming")
         lines.append(f"  {precision}: {bench['latency_ms']['median']:.2f} ms median, {bench['fps']:.1f} FPS, "
-                     f"{memory:.0f} MiB, {100 * bench['gemm_fraction']:.0f}% of GEMM")  # fmt: skip
+                     f"{memory:.0f} MiB, {100 * bench['gemm_fraction']:.0f}% of GEMM"
+                     + (f"; streamed {streamed['latency_ms']['median']:.2f} ms per frame, "
+                        f"x{streamed['latency_ratio']:.3f} of one frame" if streamed else ""))  # fmt: skip
     if "agreement" in result:
         lines.append("  agreement with fp32: " + ", ".join(f"{k} {100 * v:.2f}%" for k, v in result["agreement"].items()
                                                            if k != "weights"))  # fmt: skip
@@ -283,6 +306,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--quick", action="store_true", help="one or two passes of everything (a dry run)")
     parser.add_argument("--compile", nargs="*", default=None, metavar="MODEL",
                         help="also the fast path with torch.compile (CUDA graphs on a GPU; slow start), for the "
+                             "models named, or all of them when none is")  # fmt: skip
+    parser.add_argument("--graphs", nargs="*", default=None, metavar="MODEL",
+                        help="also each precision with the network replayed from a CUDA graph (cuda_graph), for the "
                              "models named, or all of them when none is")  # fmt: skip
     parser.add_argument("--skip", nargs="+", default=(), choices=("agreement", "training"),
                         help="sections left out (a rerun of the inference alone)")  # fmt: skip

@@ -272,33 +272,3 @@ def test_stage_timer_splits_the_backward_by_stage():
     assert covered == pytest.approx(elapsed, abs=0.01)  # the intervals partition the backward
     assert all(seconds > 0 for seconds in timer.seconds.values())  # forward times as before
 
-
-def test_a_cuda_graph_step_returns_outputs_that_a_later_replay_cannot_overwrite():
-    """The compiled stages' wrapper clones every tensor of the output, through containers and dataclasses, so that a
-    replay writing into the graph's memory leaves the tensors already returned intact."""
-    import dataclasses
-    from typing import NamedTuple
-
-    from occkit.models.inference import _graph_step
-
-    @dataclasses.dataclass
-    class Output:
-        logits: torch.Tensor
-        extra: dict
-
-    class Pair(NamedTuple):
-        first: torch.Tensor
-        second: int
-
-    buffer = torch.zeros(3)  # stands for the graph's output memory, rewritten by every call
-
-    def replay(x):
-        buffer.copy_(x)
-        return Output(logits=buffer, extra={"pair": Pair(buffer, 2), "list": [buffer]})
-
-    step = _graph_step(replay)
-    first = step(torch.ones(3))
-    step(torch.full((3,), 5.0))
-    assert torch.equal(first.logits, torch.ones(3))
-    assert torch.equal(first.extra["pair"].first, torch.ones(3)) and first.extra["pair"].second == 2
-    assert torch.equal(first.extra["list"][0], torch.ones(3))

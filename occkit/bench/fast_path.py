@@ -18,6 +18,10 @@ from occkit.models.inference import OPTIMIZATIONS, apply_optimization
 
 __all__ = ["ablate", "apply_given"]
 
+#: The steps that may fail on a working model (a missing compiler, an operator a graph cannot capture, the wrong
+#: device): such a failure skips the step; any other step's failure is a bug and raises.
+FALLIBLE = ("compile", "cuda_graph")
+
 
 def _relative_difference(output: Tensor, reference: Tensor) -> float:
     """``max |output - reference| / max |reference|``: how far an optimization moved the logits."""
@@ -27,14 +31,15 @@ def _relative_difference(output: Tensor, reference: Tensor) -> float:
 
 def _trial(model: nn.Module, name: str, runner: ModelRunner) -> tuple[nn.Module | None, dict]:
     """A copy of ``model`` with the step ``name`` applied and one pass run (for ``compile``: the compilation), and the
-    step's record. A failing ``compile`` gives no model and the error in the record; other failures are bugs."""
+    step's record. A failing ``compile`` or ``cuda_graph`` (no compiler, an unsupported operator, a CPU model) gives
+    no model and the error in the record; other failures are bugs."""
     trial = copy.deepcopy(model)
     step: dict = {"optimization": name}
     try:
         apply_optimization(trial, name)
         step["first_pass_s"] = runner.time(trial)
-    except Exception as error:  # noqa: BLE001 -- compilation fails in many ways (no compiler, unsupported op)
-        if name != "compile":
+    except Exception as error:  # noqa: BLE001 -- compilation and capture fail in many ways
+        if name not in FALLIBLE:
             raise
         first_line = (str(error).strip().splitlines() or [""])[0][:300]
         step.update(kept=False, error=f"{type(error).__name__}: {first_line}")
@@ -76,7 +81,8 @@ def ablate(model: nn.Module, runner: ModelRunner, cfg: BenchConfig,
 
 def apply_given(model: nn.Module, runner: ModelRunner, cfg: BenchConfig,
                 log: Callable[[str], None]) -> tuple[nn.Module, list]:  # fmt: skip
-    """The listed steps applied as they are, unmeasured, a failing ``compile`` skipped; the step records."""
+    """The listed steps applied as they are, unmeasured, a failing ``compile`` or ``cuda_graph`` skipped; the step
+    records."""
     steps = []
     for name in cfg.optimizations:
         trial, step = _trial(model, name, runner)

@@ -22,7 +22,7 @@ from occkit.bench.timing import percentile
 from occkit.machine import machine_info
 from occkit.metrics.realtime import rt_miou_table
 from occkit.models.complexity import count_macs, count_parameters
-from occkit.models.inference import prepare_for_inference
+from occkit.models.inference import eager_network, prepare_for_inference
 from occkit.types import Batch
 
 __all__ = ["run_bench"]
@@ -68,9 +68,11 @@ def run_bench(cfg: BenchConfig, log: Callable[[str], None] = print) -> dict:
         log(f"{cfg.model}: {cfg.warmup} warm-up and {cfg.iters} timed passes, a GEMM after each")
         result.update(_time_model(model, runner, cfg, device, macs.total))
         log(f"{cfg.model}: {cfg.stage_iters} passes with stage hooks")
-        result["stages"], result["stages_total_ms"] = stage_report(
-            zoo.architecture(architecture), model, runner, cfg, macs, result["gemm_peak_gflops"]
-        )
+        with eager_network(model):  # a CUDA graph's replay calls no module, so the hooks would see nothing
+            result["stages"], result["stages_total_ms"] = stage_report(
+                zoo.architecture(architecture), model, runner, cfg, macs, result["gemm_peak_gflops"]
+            )
+        result["stages_eager"] = "cuda_graph" in result["fast_path"]["applied"]
         # Two views of the stage that falls furthest short: the lowest GEMM fraction (among stages with MACs), and
         # the most time lost against the GEMM rate (which also weighs how much of the pass the stage is).
         stages = result["stages"]

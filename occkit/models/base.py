@@ -29,13 +29,13 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
+from occkit.models.cuda_graph import NetworkGraphs
 from occkit.models.heads.flow import FlowHead
 from occkit.models.heads.occupancy import occupancy_prediction
 from occkit.models.temporal import StreamMemory, TemporalFusion
 from occkit.types import Batch, ModelOutput, OccPrediction
 
-__all__ = ["FIXED_CALIBRATION_RETIRED", "OccupancyModel", "Architecture", "Deployment", "CameraInputs", "camera_images",
-           "plan_tensors", "plan_with_tensors"]
+__all__ = ["FIXED_CALIBRATION_RETIRED", "OccupancyModel", "Architecture", "Deployment", "CameraInputs", "camera_images"]
 
 #: Why ``fixed_calibration``, a key of older view-transform and DA-Occ configs, is gone.
 FIXED_CALIBRATION_RETIRED = ("a fixed rig is an inference optimisation now (occkit bench's fixed_calibration, "
@@ -64,6 +64,9 @@ class OccupancyModel(nn.Module, metaclass=abc.ABCMeta):
         self.flow_head: FlowHead | None = None
         """The occupancy flow head (:mod:`occkit.models.heads.flow`, set by ``__init__`` when the config has
         ``flow``); it reads the occupancy head's per-cell features (:meth:`occupancy_and_flow`)."""
+        self.network_graphs: NetworkGraphs | None = None
+        """In eval mode on CUDA, :meth:`network` replayed from CUDA graphs (:mod:`occkit.models.cuda_graph`, set by
+        :func:`occkit.models.inference.capture_cuda_graphs`); None: run eagerly."""
 
     @abc.abstractmethod
     def plan(self, batch: Batch) -> Any:
@@ -103,7 +106,11 @@ class OccupancyModel(nn.Module, metaclass=abc.ABCMeta):
         inputs = self.inputs(batch)
         if self.temporal is not None:
             inputs.update(self.history_inputs(batch, memory))
-        output = self.network(inputs, self.current_plan(batch))
+        plan = self.current_plan(batch)
+        if self.network_graphs is None or self.training:
+            output = self.network(inputs, plan)
+        else:
+            output = self.network_graphs(self.network, inputs, plan)
         if memory is not None and self.temporal is not None:
             memory.push(output.history_state, batch.ego2global, batch.occ_aug)
         return output
@@ -191,33 +198,6 @@ def camera_images(batch: Batch, model: str) -> Tensor:
     if batch.images is None:
         raise ValueError(f"{model} needs camera images but the batch has none")
     return batch.images
-
-
-def plan_tensors(plan: Any, prefix: str = "") -> dict[str, Tensor]:
-    """The tensors of a plan (a dataclass, possibly nested, or None), by dotted path."""
-    if plan is None:
-        return {}
-    if isinstance(plan, Tensor):
-        return {prefix: plan}
-    if not dataclasses.is_dataclass(plan):
-        return {}
-    found = {}
-    for field in dataclasses.fields(plan):
-        found.update(plan_tensors(getattr(plan, field.name), f"{prefix}{field.name}."))
-    return {path.rstrip("."): tensor for path, tensor in found.items()}
-
-
-def plan_with_tensors(plan: Any, tensors: Mapping[str, Tensor | None], prefix: str = "") -> Any:
-    """``plan`` with the values at the paths of ``tensors`` (as :func:`plan_tensors` gives them) replaced: by tensors
-    to fill a plan, or by None to keep only its structure and sizes."""
-    path = prefix.rstrip(".")
-    if path in tensors:
-        return tensors[path]
-    if plan is None or not dataclasses.is_dataclass(plan):
-        return plan
-    changes = {f.name: plan_with_tensors(getattr(plan, f.name), tensors, f"{prefix}{f.name}.")
-               for f in dataclasses.fields(plan)}  # fmt: skip
-    return dataclasses.replace(plan, **changes)
 
 
 class Deployment(nn.Module, metaclass=abc.ABCMeta):

@@ -26,7 +26,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from occkit.models.base import OccupancyModel, plan_tensors, plan_with_tensors
+from occkit.models.base import OccupancyModel
+from occkit.models.plans import plan_tensors, plan_with_tensors
 from occkit.models.temporal import HISTORY_INPUTS, StreamMemory
 from occkit.types import Batch
 

@@ -15,6 +15,10 @@ keeps the ones that speed the model up; see ``docs/benchmarks.md``):
 ``compile``
     ``torch.compile`` on the forward of each dense stage (every child module without sparse convolutions), so
     hooks on the stages keep working and spconv stays eager.
+``cuda_graph``
+    The network (:meth:`~occkit.models.base.OccupancyModel.network`) captured as a CUDA graph and replayed
+    (:mod:`occkit.models.cuda_graph`): at batch 1 a GPU pass is bound by its hundreds of kernel launches, which a
+    replay issues in one call. CUDA only, and not for sparse convolutions (DAOcc's LiDAR path).
 
 Always done: eval mode and the detection branch removed (it runs only in training).
 
@@ -23,15 +27,16 @@ Always done: eval mode and the detection branch removed (it runs only in trainin
 
 from __future__ import annotations
 
-import dataclasses
+import contextlib
 from collections import Counter
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 
 import torch
 from torch import nn
 from torch.nn.utils.fusion import fuse_conv_bn_eval
 
 from occkit.models.base import OccupancyModel
+from occkit.models.cuda_graph import NetworkGraphs
 from occkit.models.sparse import spconv
 
 __all__ = [
@@ -43,14 +48,17 @@ __all__ = [
     "fold_conv_bn",
     "to_channels_last",
     "compile_dense_stages",
+    "capture_cuda_graphs",
+    "eager_network",
 ]
 
 #: The optional steps, in the order they are applied.
-OPTIMIZATIONS = ("fixed_calibration", "fold_bn", "channels_last", "compile")
+OPTIMIZATIONS = ("fixed_calibration", "fold_bn", "channels_last", "compile", "cuda_graph")
 
 
 def check_optimizations(names: Sequence[str]) -> tuple[str, ...]:
-    """``names`` validated and put in :data:`OPTIMIZATIONS` order (compile last: it must see the final weights)."""
+    """``names`` validated and put in :data:`OPTIMIZATIONS` order (compile after the weight rewrites: it must see the
+    final weights; the CUDA graphs last: they capture whatever the network has become)."""
     unknown = sorted(set(names) - set(OPTIMIZATIONS))
     if unknown:
         raise ValueError(f"unknown optimization(s) {', '.join(unknown)}; choose from {', '.join(OPTIMIZATIONS)}")
@@ -77,6 +85,7 @@ def apply_optimization(model: nn.Module, name: str) -> None:
         "fold_bn": fold_conv_bn,
         "channels_last": to_channels_last,
         "compile": compile_dense_stages,
+        "cuda_graph": capture_cuda_graphs,
     }
     if name not in steps:
         raise ValueError(f"unknown optimization {name!r}; choose from {', '.join(OPTIMIZATIONS)}")
@@ -197,49 +206,48 @@ def compile_dense_stages(model: nn.Module) -> list[str]:
 
     Compiling the forward (not the module) keeps the module's hooks outside the compiled graph. Inductor runs with
     ``freezing``: weights become constants, which lets it fold them and prepack convolution weights for inference.
-    On a CUDA model it also captures CUDA graphs (``reduce-overhead``'s mechanism): a replay launches a stage's
-    kernels in one call, which is what a small model at batch 1 is bound by. Compilation happens at the first call;
-    on a CPU it needs a C++ compiler.
+    CUDA graphs are the separate ``cuda_graph`` step, which then replays the compiled kernels. Compilation happens at
+    the first call; on a CPU it needs a C++ compiler.
     """
-    parameter = next(model.parameters(), None)
-    graphs = parameter is not None and parameter.device.type == "cuda"
     compiled = []
     for name, child in model.named_children():
         if next(child.parameters(), None) is None or _is_sparse(child):
             continue
-        forward = torch.compile(child.forward, options={"freezing": True, "triton.cudagraphs": graphs})
-        child.forward = _graph_step(forward) if graphs else forward
+        child.forward = torch.compile(child.forward, options={"freezing": True, "triton.cudagraphs": False})
         compiled.append(name)
     return compiled
 
 
-def _graph_step(forward):
-    """``forward`` as a CUDA-graph step of its own whose outputs outlive the next replay.
+def capture_cuda_graphs(model: nn.Module) -> list[str]:
+    """Let every occupancy model in ``model`` replay its network from CUDA graphs in eval mode
+    (:mod:`occkit.models.cuda_graph`); the names of those models.
 
-    A replay writes its outputs into the graph's fixed memory, so a stage called twice in one pass (or a caller that
-    keeps the last pass's output) would read overwritten tensors; marking a new step and cloning the outputs is what
-    PyTorch prescribes for a graph whose outputs are kept.
+    Raises:
+        ValueError: ``model`` is not on a CUDA device, or its network has sparse convolutions (spconv builds its
+            rulebooks on the host, which a graph cannot capture).
     """
+    if _is_sparse(model):
+        raise ValueError("cuda_graph cannot capture sparse convolutions (spconv builds its rulebooks on the host)")
+    parameter = next(model.parameters(), None)
+    if parameter is None or parameter.device.type != "cuda":
+        raise ValueError("cuda_graph needs a model on a CUDA device")
+    changed = []
+    for name, module in model.named_modules():
+        if isinstance(module, OccupancyModel):
+            module.network_graphs = NetworkGraphs()
+            changed.append(name or type(module).__name__)
+    return changed
 
-    def run(*args, **kwargs):
-        torch.compiler.cudagraph_mark_step_begin()
-        output = forward(*args, **kwargs)
-        return _clone_tensors(output)
 
-    return run
-
-
-def _clone_tensors(value):
-    """``value`` with every tensor in it (through dicts, lists, tuples and dataclasses) cloned."""
-    if isinstance(value, torch.Tensor):
-        return value.clone()
-    if isinstance(value, dict):
-        return type(value)((key, _clone_tensors(item)) for key, item in value.items())
-    if isinstance(value, (list, tuple)) and not hasattr(value, "_fields"):
-        return type(value)(_clone_tensors(item) for item in value)
-    if isinstance(value, tuple):  # a named tuple
-        return type(value)(*(_clone_tensors(item) for item in value))
-    if dataclasses.is_dataclass(value) and not isinstance(value, type):
-        fields = {f.name: _clone_tensors(getattr(value, f.name)) for f in dataclasses.fields(value) if f.init}
-        return dataclasses.replace(value, **fields)
-    return value
+@contextlib.contextmanager
+def eager_network(model: nn.Module) -> Iterator[None]:
+    """Inside the block, ``model``'s networks run eagerly (a CUDA graph replays without calling the modules, so
+    forward hooks, such as the benchmark's stage timers, see nothing)."""
+    saved = {module: module.network_graphs for module in model.modules() if isinstance(module, OccupancyModel)}
+    for module in saved:
+        module.network_graphs = None
+    try:
+        yield
+    finally:
+        for module, graphs in saved.items():
+            module.network_graphs = graphs
