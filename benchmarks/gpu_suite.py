@@ -58,6 +58,8 @@ MODELS = ("flashocc_m0", "flashocc_m1", "da_occ", "da_occ_16f", "daocc", "daocc_
 QUICK_MODELS = ("flashocc_tiny", "da_occ_tiny", "daocc_tiny")
 #: nuScenes' training split, the papers' epoch.
 NUSCENES_TRAIN_SAMPLES = 28130
+#: A near tie: two best fp32 logits closer than this fraction of the logits' largest magnitude (agreement).
+NEAR_TIE = 0.003
 #: Key frames of the training world (1600 x 900, one scene): enough distinct frames for the loader to read.
 TRAIN_WORLD_FRAMES = 12
 
@@ -72,20 +74,27 @@ def _synchronize(device: torch.device) -> None:
 
 
 def agreement(entry: str, device: torch.device, data: Path | None) -> dict[str, float]:
-    """Share of voxels whose arg-max class under each reduced-precision autocast equals fp32's, on the bench frame;
-    on CUDA also the fp32 network replayed from a CUDA graph (a camera model's ``cuda_graph`` fast path)."""
+    """Share of voxels whose arg-max class under each reduced-precision autocast equals fp32's, on the bench frame,
+    over all voxels and outside the near ties (:data:`NEAR_TIE`, whose share is ``near_tie_share``); on CUDA also the
+    fp32 network replayed from a CUDA graph (a camera model's ``cuda_graph`` fast path)."""
     weights = "synthetic" if entry in shipped_entries() else None
     torch.manual_seed(0)
     model = zoo.build(entry, weights=weights).to(device).eval()
     batch = load_sample(entry, data, log=lambda _: None).to(device)
     with torch.no_grad():
-        reference = model(batch).occupancy.argmax(dim=1)
-        shares = {}
+        logits = model(batch).occupancy.float()
+        reference = logits.argmax(dim=1)
+        best_two = logits.topk(2, dim=1).values
+        # Voxels whose two best fp32 logits differ by less than NEAR_TIE of the logits' range: a reduced precision
+        # may flip them without being wrong in any useful sense (random weights leave many).
+        clear = (best_two[:, 0] - best_two[:, 1]) >= NEAR_TIE * logits.abs().amax()
+        shares = {"near_tie_share": float(1 - clear.float().mean())}
         for precision in _precisions(device)[1:]:
             dtype = {"fp16": torch.float16, "bf16": torch.bfloat16}[precision]
             with torch.autocast(device.type, dtype=dtype):
                 predicted = model(batch).occupancy.float().argmax(dim=1)
             shares[precision] = float((predicted == reference).float().mean())
+            shares[f"{precision}_outside_near_ties"] = float((predicted == reference)[clear].float().mean())
         if device.type == "cuda" and not _sparse(model):
             graphed = prepare_for_inference(copy.deepcopy(model), ("fixed_calibration", "cuda_graph"))
             for _ in range(2):  # the capture, then a replay
@@ -210,13 +219,13 @@ def run_model(entry: str, args: argparse.Namespace, device: torch.device, train_
                     "inference": {}, "written": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())}  # fmt: skip
     quick = args.quick
     log = lambda text: print(f"  {text}", flush=True)  # noqa: E731
-    for precision in _precisions(device):
+    for precision in _precisions(device) if "inference" not in args.skip else ():
         cfg = BenchConfig(model=entry, device=str(device), precision=precision, iters=1 if quick else 20,
                           warmup=1 if quick else 5, optimizations=("fixed_calibration", "fold_bn"),
                           stage_iters=1 if quick else 3, gemm_size=256 if quick else None,
                           gemm_repeats=1 if quick else 3, data=args.data)  # fmt: skip
         _section(result["inference"], precision, partial(run_bench, cfg, log=log))
-    if args.graphs is not None and (not args.graphs or entry in args.graphs):
+    if "inference" not in args.skip and args.graphs is not None and (not args.graphs or entry in args.graphs):
         for precision in _precisions(device):
             cfg = BenchConfig(model=entry, device=str(device), precision=precision, iters=1 if quick else 20,
                               warmup=1 if quick else 5, stage_iters=1 if quick else 3,
@@ -310,8 +319,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--graphs", nargs="*", default=None, metavar="MODEL",
                         help="also each precision with the network replayed from a CUDA graph (cuda_graph), for the "
                              "models named, or all of them when none is")  # fmt: skip
-    parser.add_argument("--skip", nargs="+", default=(), choices=("agreement", "training"),
-                        help="sections left out (a rerun of the inference alone)")  # fmt: skip
+    parser.add_argument("--skip", nargs="+", default=(), choices=("inference", "agreement", "training"),
+                        help="sections left out (a rerun of the inference alone, or of the agreement)")  # fmt: skip
     parser.add_argument("--workers", type=int, default=4, help="loader processes of the training measurement")
     parser.add_argument("--data", default=None, help="dataset of the inference frame (default: the bench's world)")
     parser.add_argument("--train-data", type=Path, default=Path("data/gpu-suite-train"),

@@ -50,8 +50,8 @@ COMMANDS: dict[str, Command] = {
             explore.add_viz, explore.run_viz),
     "view": ("one scene in rerun's interactive 3D viewer: cameras, LiDAR, boxes, trajectory, occupancy, predictions "
              "and their errors on a timeline", explore.add_view, explore.run_view),
-    "demo": ("the whole system on a laptop: synthetic world, train three tiny models (one per family), evaluate, "
-             "render, report",
+    "demo": ("the whole system on a laptop: synthetic world, three tiny models (one per family) scored with their "
+             "shipped weights and trained briefly from scratch, rendered, reported",
              explore.add_demo, explore.run_demo),
 }
 

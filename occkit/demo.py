@@ -1,12 +1,14 @@
 """``occkit demo``: the whole system on a laptop CPU, end to end, in under 20 minutes.
 
 1. Write a small synthetic world (train scenes and held-out validation scenes) if the data folder is absent.
-2. Train one model of each family on the training scenes: ``daocc_tiny`` (camera + LiDAR fusion), ``da_occ_tiny``
-   (camera only, DA-Occ's height-score projection and direction-aware convolutions; LiDAR heights supervise its
-   height branch in training) and ``flashocc_tiny`` (camera only, the baseline).
-3. Score each on the held-out scenes (Occ3D mIoU and geometry IoU under the camera mask, RayIoU), beside the
-   trivial baseline that predicts the most frequent class everywhere.
-4. Render predictions next to the ground truth and write ``report.md`` and ``metrics.json``.
+2. Score the weights occkit ships for one model of each family (:mod:`occkit.shipped`, trained on a world of another
+   seed) on the held-out scenes: ``daocc_tiny`` (camera + LiDAR fusion), ``da_occ_tiny`` (camera only, DA-Occ's
+   height-score projection and direction-aware convolutions) and ``flashocc_tiny`` (camera only, the baseline).
+   Occ3D mIoU and geometry IoU under the camera mask, RayIoU, per class; beside two predictions that need no model:
+   free space everywhere, and the labels' own ground layer.
+3. Train each family from random weights for a few hundred steps on the training scenes, to show the loop learning
+   (its loss curve and held-out score).
+4. Render the predictions next to the ground truth and write ``report.md`` and ``metrics.json``.
 """
 
 from __future__ import annotations
@@ -29,12 +31,14 @@ from occkit.experiment import replace_train
 from occkit.figure import new_figure, save_figure
 from occkit.label_space import OCC3D_SPACE
 from occkit.metrics.confusion import OccupancyMetric
+from occkit.shipped import SYNTHETIC, card, shipped_entries
 from occkit.sim.generate import SimConfig, simulate_dataset
 from occkit.viz.bev import bev_image
 
 __all__ = ["run_demo", "check_world", "baselines", "learned", "DEMO_MODELS", "DEMO_WORLD", "GROUND_CLASSES"]
 
-#: Zoo entries the demo trains, one per family, with their optimizer steps (docs/training.md gives the minutes).
+#: Zoo entries the demo scores (their shipped weights) and trains from random weights, one per family, with the short
+#: run's optimizer steps (docs/training.md gives the minutes).
 DEMO_MODELS: dict[str, int] = {"daocc_tiny": 400, "da_occ_tiny": 200, "flashocc_tiny": 200}
 #: The label space of the demo's world and models: Occ3D (the world writes its labels and visibility masks).
 DEMO_SPACE = OCC3D_SPACE
@@ -123,8 +127,9 @@ def learned(scores: dict, ground: dict) -> str:
     return f"objects above the ground: {listed}{more} IoU"
 
 
-def _render(models: dict, datasets: dict, out: Path, frames: int = 3) -> Path:
-    """Ground truth and each model's prediction, bird's-eye view under the camera mask, a row per frame.
+def _render(models: dict, datasets: dict, path: Path, title: str, frames: int = 3) -> Path:
+    """Ground truth and each model's prediction, bird's-eye view under the camera mask, a row per frame, into
+    ``path``.
 
     ``datasets`` holds each model's own view of the validation split (a camera-only model loads no LiDAR); they
     list the same frames in the same order.
@@ -147,49 +152,80 @@ def _render(models: dict, datasets: dict, out: Path, frames: int = 3) -> Path:
             axis.imshow(bev_image(grid, mask, DEMO_SPACE.taxonomy))
             axis.set_title(f"{title}\n{batch.tokens[0][:8]}" if row == 0 else batch.tokens[0][:8], fontsize=9)
             axis.axis("off")
-    fig.suptitle("held-out frames, bird's-eye view (forward up), camera-visible voxels", fontsize=10)
+    fig.suptitle(f"{title}: held-out frames, bird's-eye view (forward up), camera-visible voxels", fontsize=10)
     fig.tight_layout()
-    return save_figure(fig, out / "predictions.png", dpi=110)
+    return save_figure(fig, path, dpi=110)
 
 
-def _report(out: Path, results: dict, baseline: dict, seconds: float, render: Path) -> Path:
+def _report(out: Path, shipped: dict, trained: dict, baseline: dict, seconds: float, renders: dict) -> Path:
     taxonomy = DEMO_SPACE.taxonomy
+    free, ground = baseline["free"], baseline["ground"]
+    baseline_rows = [
+        f"| free space everywhere (the most frequent class) | none | - | {100 * free['miou']:.1f} | "
+        f"{100 * free['iou']:.1f} | - |",
+        f"| the labels' ground layer, free above it (the most a ground-only model scores) | none | - | "
+        f"{100 * ground['miou']:.1f} | {100 * ground['iou']:.1f} | - |",
+    ]
     lines = [
         "# occkit demo",
         "",
-        "Trained on the synthetic world's training scenes and scored on its held-out scenes on this machine "
-        f"(this run: {seconds / 60:.1f} min; training already done in this folder is reused). Occ3D protocol: mIoU "
-        f"over the {len(taxonomy.semantic_ids)} semantic classes and geometry IoU (occupied vs free), both under the "
-        "camera visibility mask; RayIoU without mask.",
+        f"This run: {seconds / 60:.1f} min on this machine (work already done in this folder is reused). Scored on "
+        f"the synthetic world's held-out scenes with the Occ3D protocol: mIoU over the {len(taxonomy.semantic_ids)} "
+        "semantic classes and geometry IoU (occupied vs free), both under the camera visibility mask; RayIoU without "
+        "mask.",
         "",
-        "| model | inputs | also supervised in training by | steps | train time | mIoU | IoU | RayIoU |",
-        "| --- | --- | --- | --- | --- | --- | --- | --- |",
     ]
-    for name, result in results.items():
-        inputs = " + ".join(zoo.model_config(name)[1].sensors)
-        lines.append(f"| `{name}` | {inputs} | {_training_signals(name)} | {result['steps']} | "
-                     f"{result['train_seconds'] / 60:.1f} min | "
+    if shipped:
+        lines += [
+            "## The shipped weights",
+            "",
+            "Trained by occkit on a synthetic world of another seed (`scripts/train_shipped_weights.py`; each "
+            "file's card in `occkit/weights/` says how, and holds the scores below).",
+            "",
+            "| model | inputs | trained | mIoU | IoU | RayIoU |",
+            "| --- | --- | --- | --- | --- | --- |",
+        ]
+        for name, result in shipped.items():
+            lines.append(f"| `{name}` | {_inputs(name)} | {result['trained']} | {100 * result['miou']:.1f} | "
+                         f"{100 * result['iou']:.1f} | {100 * result['rayiou']:.1f} |")  # fmt: skip
+        lines += baseline_rows + ["", "What each has learned (a class counts from 5 IoU):", ""]
+        lines += [f"- `{name}`: {learned(result, ground)}" for name, result in shipped.items()]
+        lines += ["", f"![the shipped weights' predictions]({renders['shipped'].name})", ""]
+    lines += [
+        "## A short training run from random weights",
+        "",
+        "Each family trained here on the training scenes for a few hundred steps: the loop learning, not a trained "
+        "model (each run folder holds its `loss.png`, `train.csv` and TensorBoard events).",
+        "",
+        "| model | inputs | also supervised in training by | steps | train time | loss, first -> last 50 steps | "
+        "mIoU | IoU | RayIoU |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+    ]
+    for name, result in trained.items():
+        first, last = result["loss"]
+        lines.append(f"| `{name}` | {_inputs(name)} | {_training_signals(name)} | {result['steps']} | "
+                     f"{result['train_seconds'] / 60:.1f} min | {first:.2f} -> {last:.2f} | "
                      f"{100 * result['miou']:.1f} | {100 * result['iou']:.1f} | {100 * result['rayiou']:.1f} |")
-    free, ground = baseline["free"], baseline["ground"]
-    lines.append(f"| free space everywhere (the most frequent class) | none | - | - | - | {100 * free['miou']:.1f} | "
-                 f"{100 * free['iou']:.1f} | - |")
-    lines.append(f"| the labels' ground layer, free above it (the most a ground-only model scores) | none | - | - | - "
-                 f"| {100 * ground['miou']:.1f} | {100 * ground['iou']:.1f} | - |")
-    lines += ["", "What each model has learned (a class counts from 5 IoU):", ""]
-    lines += [f"- `{name}`: {learned(result, ground)}" for name, result in results.items()]
-    lines += ["", "Per-class IoU (%):", "", "| class | " + " | ".join(f"`{n}`" for n in results) + " |",
-              "| --- |" + " --- |" * len(results)]  # fmt: skip
+    if not shipped:
+        lines += baseline_rows
+    lines += ["", "What each has learned so far:", ""]
+    lines += [f"- `{name}`: {learned(result, ground)}" for name, result in trained.items()]
+    lines += ["", f"![predictions after the short runs]({renders['trained'].name})", ""]
+    columns = {**{f"{name} (shipped)": r for name, r in shipped.items()},
+               **{f"{name} ({r['steps']} steps)": r for name, r in trained.items()}}  # fmt: skip
+    lines += ["## Per-class IoU (%)", "", "| class | " + " | ".join(f"`{n}`" for n in columns) + " |",
+              "| --- |" + " --- |" * len(columns)]  # fmt: skip
     for name in (taxonomy.classes[i] for i in taxonomy.semantic_ids):
-        values = [results[m]["per_class_iou"].get(name) for m in results]
-        cells = " | ".join("-" if v is None else f"{100 * v:.1f}" for v in values)
-        lines.append(f"| {name} | {cells} |")
-    lines += ["", f"![predictions]({render.name})", ""]
-    for name in results:
-        lines.append(f"- `{name}`: run folder `{name}/` (checkpoints, `train.csv`, TensorBoard events, "
-                     "`loss.png`, `per_class_iou.png`)")  # fmt: skip
+        values = [result["per_class_iou"].get(name) for result in columns.values()]
+        lines.append(f"| {name} | " + " | ".join("-" if v is None else f"{100 * v:.1f}" for v in values) + " |")
+    lines.append("")
     path = out / "report.md"
     path.write_text("\n".join(lines) + "\n")
     return path
+
+
+def _inputs(name: str) -> str:
+    return " + ".join(zoo.model_config(name)[1].sensors)
 
 
 def _training_signals(name: str) -> str:
@@ -222,42 +258,73 @@ def run_demo(out: str | Path, data: str | Path, models: dict[str, int] | None = 
 
 def _train_score_report(out: Path, data: Path, models: dict[str, int], started: float) -> Path:
     out.mkdir(parents=True, exist_ok=True)
-    results, trained, datasets = {}, {}, {}
+    # On the CPU every core runs the model's threads: a loader process would only take turns with them (a
+    # daocc_tiny step took 1.72 s with one loader process and 1.60 s reading in the main process, 2 cores).
+    workers = None if torch.cuda.is_available() else 0
+    shipped, trained, datasets = {}, {}, {}  # scores by entry, and each entry's held-out frames
+    ready, from_scratch = {}, {}  # the models: shipped weights, and after the short run
+    for name in models:
+        experiment = _demo_experiment(name, data)
+        datasets[name] = evaluation_dataset(experiment, data, "val")
+        if name not in shipped_entries():
+            continue
+        described = card(name)
+        _say(f"scoring the shipped {name} ({described.steps} steps on {described.device}) on {len(datasets[name])} "
+             "held-out frames")  # fmt: skip
+        model = zoo.build(name, weights=SYNTHETIC).eval()
+        scores = _score(name, model, datasets[name], experiment, workers)
+        shipped[name] = {**scores, "trained": f"{described.steps} steps, card {described.sha256[:12]}"}
+        ready[name] = model
     for name, steps in models.items():
-        experiment = zoo.experiment(name)
-        if experiment.data.label_space != DEMO_SPACE.name:
-            raise ValueError(f"demo model {name} predicts {experiment.data.label_space} labels; the demo's world "
-                             f"holds {DEMO_SPACE.name} labels")  # fmt: skip
-        experiment = dataclasses.replace(experiment, data=dataclasses.replace(experiment.data, root=str(data)))
-        # On the CPU every core runs the model's threads: a loader process would only take turns with them (a
-        # daocc_tiny step took 1.72 s with one loader process and 1.60 s reading in the main process, 2 cores).
-        workers = experiment.train.workers if torch.cuda.is_available() else 0
-        experiment = replace_train(experiment, max_steps=steps, epochs=1000, val_every=-1, checkpoint_every=100,
-                                   workers=workers)  # fmt: skip
-        _say(f"training {name} for {steps} steps ({zoo.description(name)})")
+        experiment = replace_train(_demo_experiment(name, data), max_steps=steps, epochs=1000, val_every=-1,
+                                   checkpoint_every=100)  # fmt: skip
+        if workers == 0:
+            experiment = replace_train(experiment, workers=0)
+        _say(f"training {name} from random weights for {steps} steps ({zoo.description(name)})")
         # A rerun with other --steps continues the earlier run: only the step count may differ.
         run = train(experiment, out / name, resume="auto", allow_changes=("train.max_steps", "train.workers"))
         train_seconds = _training_time(out / name, run.seconds)
         model, experiment = load_trained(sorted((out / name).glob("step-*.pt"))[-1])
-        dataset = evaluation_dataset(experiment, data, "val")
-        torch.set_flush_denormal(True)  # as during training: subnormals are an order of magnitude slower on CPUs
-        _say(f"scoring {name} on {len(dataset)} held-out frames")
-        scores = score_model(model, dataset, workers=workers)
-        results[name] = {**scores, "steps": run.steps, "train_seconds": train_seconds}
-        trained[name], datasets[name] = model, dataset
-        _say(f"{name}: mIoU {100 * scores['miou']:.1f}, IoU {100 * scores['iou']:.1f}, "
-             f"RayIoU {100 * scores['rayiou']:.1f}")  # fmt: skip
+        scores = _score(name, model, datasets[name], experiment, workers)
+        trained[name] = {**scores, "steps": run.steps, "train_seconds": train_seconds, "loss": _loss_ends(out / name)}
+        from_scratch[name] = model
     baseline = baselines(next(iter(datasets.values())))
-    render = _render(trained, datasets, out)
+    renders = {"trained": _render(from_scratch, datasets, out / "predictions_from_scratch.png", "after the short runs")}
+    if shipped:
+        renders["shipped"] = _render(ready, datasets, out / "predictions.png", "the shipped weights")
     seconds = time.perf_counter() - started
-    metrics = {name: {k: v for k, v in r.items()} for name, r in results.items()}
-    metrics["most_frequent_class"] = {"miou": baseline["free"]["miou"], "iou": baseline["free"]["iou"]}
-    metrics["ground_layer"] = {"miou": baseline["ground"]["miou"], "iou": baseline["ground"]["iou"]}
-    for name, result in metrics.items():
-        if name in results:
-            result["learned"] = learned(results[name], baseline["ground"])
-    (out / "metrics.json").write_text(json.dumps({"models": metrics, "seconds": seconds, "data": str(data)},
-                                                 indent=2) + "\n")  # fmt: skip
-    report = _report(out, results, baseline, seconds, render)
+    metrics = {
+        "shipped": {name: {**r, "learned": learned(r, baseline["ground"])} for name, r in shipped.items()},
+        "from_scratch": {name: {**r, "learned": learned(r, baseline["ground"])} for name, r in trained.items()},
+        "most_frequent_class": {"miou": baseline["free"]["miou"], "iou": baseline["free"]["iou"]},
+        "ground_layer": {"miou": baseline["ground"]["miou"], "iou": baseline["ground"]["iou"]},
+    }
+    (out / "metrics.json").write_text(json.dumps({**metrics, "seconds": seconds, "data": str(data)}, indent=2) + "\n")
+    report = _report(out, shipped, trained, baseline, seconds, renders)
     _say(f"done in {seconds / 60:.1f} min: {report}")
     return report
+
+
+def _demo_experiment(name: str, data: Path):
+    """Zoo entry ``name``'s experiment on the demo's world in ``data``."""
+    experiment = zoo.experiment(name)
+    if experiment.data.label_space != DEMO_SPACE.name:
+        raise ValueError(f"demo model {name} predicts {experiment.data.label_space} labels; the demo's world holds "
+                         f"{DEMO_SPACE.name} labels")  # fmt: skip
+    return dataclasses.replace(experiment, data=dataclasses.replace(experiment.data, root=str(data)))
+
+
+def _score(name: str, model: torch.nn.Module, dataset, experiment, workers: int | None) -> dict:
+    torch.set_flush_denormal(True)  # as during training: subnormals are an order of magnitude slower on CPUs
+    scores = score_model(model, dataset, workers=experiment.train.workers if workers is None else workers)
+    _say(f"{name}: mIoU {100 * scores['miou']:.1f}, IoU {100 * scores['iou']:.1f}, RayIoU {100 * scores['rayiou']:.1f}")
+    return scores
+
+
+def _loss_ends(run: Path, rows: int = 5) -> tuple[float, float]:
+    """The run's mean training loss over its first and its last ``rows`` log rows (``train.csv``, a row every 10
+    steps)."""
+    lines = (run / "train.csv").read_text().splitlines()
+    column = lines[0].split(",").index("loss")
+    losses = [float(line.split(",")[column]) for line in lines[1:] if line.strip()]
+    return float(np.mean(losses[:rows])), float(np.mean(losses[-rows:]))

@@ -4,13 +4,16 @@
         [--world data/shipped-world] [--demo-data data/demo] [--epochs 30] [--write]
 
 For each entry: the training world (:data:`TRAIN_WORLD`, a seed other than the demo's) is written if absent; the
-entry's CPU recipe trains on it for ``--epochs`` epochs, validating on its held-out scenes every 2 epochs and saving a
-checkpoint every 200 steps, and a rerun resumes from the newest checkpoint (a run may span sessions, and a GPU runs
-it with ``--device cuda``). With ``--write``, the last weights are rounded to half precision, scored on the demo
-world's held-out scenes (mIoU, IoU, RayIoU, per class) and written with their card (:mod:`occkit.shipped`): the
-world, steps, training time (summed from the run log's throughput, so resumed runs count only their own steps), the
-devices (each session's, from the run folder's ``sessions.jsonl``), this command, the scores, the curve of held-out
-mIoU over the run and whether it converged (less than 0.5 mIoU gained over the last fifth of the run).
+entry's CPU recipe (at ``--batch-size``, if given) trains on it for ``--epochs`` epochs, validating on its held-out
+scenes every 2 epochs and saving a checkpoint every 200 steps, and a rerun resumes from the newest checkpoint (a run
+may span sessions, and a GPU runs it with ``--device cuda``).
+
+With ``--write``, the last weights are rounded to half precision, scored on the demo world's held-out scenes (mIoU,
+IoU, RayIoU, per class) and written with their card (:mod:`occkit.shipped`): the world; the steps; the training
+time (summed from the run log's throughput, so resumed runs count only their own steps); the devices (each
+session's, from the run folder's ``sessions.jsonl``, saying where a session resumed from a checkpoint without
+optimizer state); the command that reproduces the run; the scores; the curve of held-out mIoU over the run and
+whether it converged (less than 0.5 mIoU gained over the last fifth of the run).
 """
 
 from __future__ import annotations
@@ -49,9 +52,12 @@ def record_session(run: Path, device: str) -> None:
     """Append this session (the step the trainer resumes from, which is its newest checkpoint's, and ``device``)."""
     checkpoints = sorted(run.glob("step-*.pt"))
     start = int(checkpoints[-1].stem.removeprefix("step-")) if checkpoints else 0
+    record = {"from_step": start, "device": device}
+    if checkpoints and torch.load(checkpoints[-1], map_location="cpu", weights_only=False)["optimizer"] is None:
+        record["fresh_optimizer"] = True  # the checkpoint travelled without AdamW's moments
     run.mkdir(parents=True, exist_ok=True)
     with open(run / SESSIONS, "a") as handle:
-        handle.write(json.dumps({"from_step": start, "device": device}) + "\n")
+        handle.write(json.dumps(record) + "\n")
 
 
 def devices(run: Path, steps: int, fallback: str) -> str:
@@ -66,7 +72,8 @@ def devices(run: Path, steps: int, fallback: str) -> str:
         spans = [span for span in spans if span[1] < start]
         if spans:
             spans[-1][2] = min(spans[-1][2], start)
-        spans.append([session["device"], start, steps])
+        fresh = ", resumed with fresh optimizer moments" if session.get("fresh_optimizer") else ""
+        spans.append([session["device"] + fresh, start, steps])
     spans = [span for span in spans if span[1] < steps]
     if not spans:
         return fallback
@@ -128,8 +135,17 @@ def training_seconds(run: Path, batch_size: int) -> float:
     return seconds
 
 
-def package(entry: str, run: Path, demo: Path, world: dict, device: str, trained_on: str, command: str,
-            out: Path) -> None:  # fmt: skip
+def reproduce_command(entry: str, experiment) -> str:
+    """The command that trains ``experiment``'s run again and writes the card: the settings that make the run (epochs,
+    batch size), none of the folders it happened to use (the defaults serve)."""
+    recipe = zoo.experiment(entry).train
+    args = ["--entry", entry, "--epochs", str(experiment.train.epochs)]
+    if experiment.train.batch_size != recipe.batch_size:
+        args += ["--batch-size", str(experiment.train.batch_size)]
+    return "python scripts/train_shipped_weights.py " + shlex.join([*args, "--write"])
+
+
+def package(entry: str, run: Path, demo: Path, world: dict, device: str, trained_on: str, out: Path) -> None:
     """Score the run's newest checkpoint, rounded to half precision, on ``demo``'s held-out scenes (on ``device``)
     and write it with its card into ``out`` (``trained_on`` names where the run trained)."""
     checkpoint = sorted(run.glob("step-*.pt"))[-1]
@@ -151,7 +167,7 @@ def package(entry: str, run: Path, demo: Path, world: dict, device: str, trained
         "entry": entry, "world": {**world, "image_size": list(world["image_size"])}, "steps": steps,
         "train_seconds": round(training_seconds(run, experiment.train.batch_size), 1),
         "device": devices(run, steps, trained_on),
-        "command": command, "curve": points, "notes": notes,
+        "command": reproduce_command(entry, experiment), "curve": points, "notes": notes,
         "scores": {"miou": scores["miou"], "iou": scores["iou"], "rayiou": scores.get("rayiou"),
                    "per_class": scores["per_class_iou"]},
     }, out)  # fmt: skip
@@ -180,7 +196,6 @@ def main() -> int:
         parser.error("--no-train goes with --write")
     if not args.no_train:
         ensure_world(args.world, TRAIN_WORLD)
-    command = "python scripts/train_shipped_weights.py " + shlex.join(sys.argv[1:])
     threads = torch.get_num_threads()
     trained_on = (f"cpu ({threads} thread{'' if threads == 1 else 's'})" if args.device == "cpu"
                   else torch.cuda.get_device_name())
@@ -194,7 +209,7 @@ def main() -> int:
             print(f"{entry}: trained to step {run.steps}", flush=True)
         if args.write:
             ensure_world(args.demo_data, DEMO_WORLD)
-            package(entry, args.runs / entry, args.demo_data, TRAIN_WORLD, args.device, trained_on, command, args.out)
+            package(entry, args.runs / entry, args.demo_data, TRAIN_WORLD, args.device, trained_on, args.out)
     return 0
 
 

@@ -366,6 +366,29 @@ def test_resume_auto_after_a_kill_before_the_first_checkpoint_starts_afresh(data
     assert _without_speed(rows[:2]) == _without_speed(first_attempt)
 
 
+def test_a_checkpoint_without_its_optimizer_state_resumes_with_fresh_moments(data, tmp_path, capsys):
+    """A run moved between machines may travel without AdamW's moments (they double the file): it resumes with the
+    weights, the step and the schedule, and says that the moments start afresh."""
+    from occkit.engine.train import train
+
+    experiment = load_experiment("flashocc_tiny", [f"data.root={data}", *SMALL, "train.max_steps=2",
+                                             "train.val_every=-1", "train.checkpoint_every=1"])  # fmt: skip
+    out = tmp_path / "run"
+    with torch_threads(1):
+        train(experiment, out, progress=False, device="cpu")
+        checkpoint = latest_checkpoint(out)
+        payload = torch.load(checkpoint, map_location="cpu", weights_only=False)
+        payload["optimizer"] = None
+        torch.save(payload, checkpoint)
+        longer = load_experiment("flashocc_tiny", [f"data.root={data}", *SMALL, "train.max_steps=3",
+                                                   "train.val_every=-1", "train.checkpoint_every=1"])  # fmt: skip
+        run = train(longer, out, resume="auto", progress=False, device="cpu", allow_changes=("train.max_steps",))
+    assert run.steps == 3
+    assert "holds no optimizer state: AdamW's moments start afresh at step 2" in capsys.readouterr().out
+    resumed = torch.load(latest_checkpoint(out), map_location="cpu", weights_only=False)
+    assert resumed["optimizer"]["state"]  # the moments of the steps after the resume
+
+
 # ------------------------------------------------------------------------------------------------------ DDP
 #: ``python -m occkit`` that also saves this rank's final training state to the folder given first.
 DUMP_RANK_STATE = '''

@@ -16,9 +16,13 @@ def test_the_gpu_suite_dry_runs_on_the_cpu_and_writes_one_json_per_model(tmp_pat
     suite = benchmark_module("gpu_suite.py")
     out = tmp_path / "gpu"
     assert suite.main(["--device", "cpu", "--quick", "--models", "flashocc_tiny", "--data", str(world),
-                       "--train-data", str(world), "--workers", "0", "--out", str(out)]) == 0  # fmt: skip
+                       "--train-data", str(world), "--workers", "0", "--out", str(out), "--graphs"]) == 0  # fmt: skip
     result = json.loads((out / "flashocc_tiny.json").read_text())
-    assert set(result["inference"]) == {"fp32", "bf16"}  # no fp16 on a CPU
+    # No fp16 on a CPU; the graph rows run, their cuda_graph step skipped with its reason.
+    assert set(result["inference"]) == {"fp32", "bf16", "fp32_cuda_graph", "bf16_cuda_graph"}
+    graph_step = result["inference"]["fp32_cuda_graph"]["fast_path"]["steps"][-1]
+    assert graph_step["optimization"] == "cuda_graph" and not graph_step["kept"]
+    assert "CUDA device" in graph_step["error"]
     for bench in result["inference"].values():
         assert bench["latency_ms"]["median"] > 0 and bench["fps"] > 0 and bench["peak_memory"]["bytes"] > 0
         assert bench["gemm_fraction"] > 0 and bench["gemm_peak_gflops"] > 0

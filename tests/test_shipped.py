@@ -157,9 +157,15 @@ def test_a_card_names_every_device_a_run_trained_on(tmp_path):
     script = _training_script()
     assert script.devices(tmp_path, 500, "cpu (2 threads)") == "cpu (2 threads)"  # no record: the session's own
     script.record_session(tmp_path, "NVIDIA H100")  # a fresh run starts at step 0
-    (tmp_path / "step-00002304.pt").touch()
+    torch.save({"optimizer": {"state": {}}}, tmp_path / "step-00002304.pt")
     script.record_session(tmp_path, "cpu (1 threads)")  # resumed from its newest checkpoint
-    (tmp_path / "step-00002400.pt").touch()
+    torch.save({"optimizer": {"state": {}}}, tmp_path / "step-00002400.pt")
     script.record_session(tmp_path, "cpu (1 threads)")
     assert script.devices(tmp_path, 3000, "?") == "NVIDIA H100 (steps 0-2304), cpu (1 threads) (steps 2304-3000)"
     assert script.devices(tmp_path, 2000, "?") == "NVIDIA H100 (steps 0-2000)"
+    # A checkpoint that travelled without its optimizer state: the session after it says so.
+    torch.save({"optimizer": None}, tmp_path / "step-00002600.pt")
+    script.record_session(tmp_path, "cpu (1 threads)")
+    assert script.devices(tmp_path, 3000, "?") == ("NVIDIA H100 (steps 0-2304), cpu (1 threads) (steps 2304-2600), "
+                                                   "cpu (1 threads), resumed with fresh optimizer moments "
+                                                   "(steps 2600-3000)")  # fmt: skip

@@ -146,8 +146,9 @@ def add_bench(parser: argparse.ArgumentParser) -> None:
                         help="dataset root to take the last key frame from (default: a one-scene 1600x900 "
                              "synthetic world, simulated once into data/bench-1600x900)")  # fmt: skip
     parser.add_argument("--optimizations", type=_optimizations, default="auto", metavar="auto|none|LIST",
-                        help="fast path: auto (default) measures fixed_calibration, fold_bn, channels_last and "
-                             "compile one by one and keeps those that speed up; none; or a comma list to apply")
+                        help="fast path: auto (default) measures fixed_calibration, fold_bn, channels_last, compile "
+                             "and cuda_graph (CUDA only) one by one and keeps those that speed up; none; or a comma "
+                             "list to apply")
     parser.add_argument("--gemm-size", type=integer(16, 65536), default=None,
                         help="n of the n x n GEMM yardstick (default 4096 on CPU, 8192 on CUDA)")
     parser.add_argument("--miou", type=number(0, 100), default=None,

@@ -297,7 +297,8 @@ def add_demo(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--data", type=Path, default=Path("data/demo"),
                         help="synthetic dataset, written first if absent (default data/demo)")
     parser.add_argument("--steps", type=integer(1, 100_000_000), default=None,
-                        help="optimizer steps per model (default: each model's own, occkit.demo.DEMO_MODELS)")
+                        help="optimizer steps of each model's short run from random weights (default: each model's "
+                             "own, occkit.demo.DEMO_MODELS)")
 
 
 def run_demo(args: argparse.Namespace) -> int:

@@ -212,7 +212,12 @@ class _Trainer:
         self.model.load_state_dict(payload["model"])
         if self.ema is not None and payload["ema"] is not None:
             self.ema.module.load_state_dict(payload["ema"])
-        self.optimizer.load_state_dict(payload["optimizer"])
+        if payload["optimizer"] is not None:
+            self.optimizer.load_state_dict(payload["optimizer"])
+        elif self.context.is_main:
+            # A run moved between machines under a size limit may travel without AdamW's moments: they then start
+            # afresh (bias-corrected, they settle within a few hundred steps), which the run log says.
+            print(f"{path} holds no optimizer state: AdamW's moments start afresh at step {payload['step']}")
         self.scaler.load_state_dict(payload["scaler"])
         self.step, self.epoch, self.best_miou = payload["step"], payload["epoch"], payload["best_miou"]
         self.log_window = list(payload.get("log_window") or [])
