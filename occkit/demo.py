@@ -39,7 +39,7 @@ __all__ = ["run_demo", "check_world", "baselines", "learned", "DEMO_MODELS", "DE
 
 #: Zoo entries the demo scores (their shipped weights) and trains from random weights, one per family, with the short
 #: run's optimizer steps (docs/training.md gives the minutes).
-DEMO_MODELS: dict[str, int] = {"daocc_tiny": 400, "da_occ_tiny": 200, "flashocc_tiny": 200}
+DEMO_MODELS: dict[str, int] = {"daocc_tiny": 300, "da_occ_tiny": 150, "flashocc_tiny": 150}
 #: The label space of the demo's world and models: Occ3D (the world writes its labels and visibility masks).
 DEMO_SPACE = OCC3D_SPACE
 #: The synthetic world of the demo: 10 scenes of 24 key frames at 400 x 225 (the last 2-3 scenes held out).
