@@ -2,11 +2,12 @@
 their latency ratio in onnxruntime on this machine, measured in one run.
 
     python benchmarks/int8_accuracy.py [--entry flashocc_tiny] [--data data/demo] [--calibration-frames 8]
-        [--pairs 10] [--out docs/results/cpu/int8_flashocc_tiny.json]
+        [--operators all|Conv,MatMul,...] [--calibration MinMax|Percentile|Entropy] [--pairs 10] [--out FILE]
 
 The entry's shipped weights (``weights="synthetic"``) are exported for the world's rig (:func:`occkit.export.deploy`)
-at fp32, and quantized with :func:`occkit.export.quantize_int8` (QDQ, per-channel int8 weights, uint8 activations,
-MinMax ranges) calibrated on key frames of the *training* scenes, evenly spaced. Both graphs then run in onnxruntime
+at fp32, and quantized with :func:`occkit.export.quantize_int8` (QDQ, per-channel int8 weights, uint8 activations;
+by default ``occkit export``'s operators and calibration method, or the ones given) calibrated on key frames of the
+*training* scenes, evenly spaced. Both graphs then run in onnxruntime
 on every key frame of the held-out scenes; the Occ3D metric (camera mask) scores each graph's arg-max, and the
 PyTorch model is scored beside them (the fp32 graph should equal it). The latencies are onnxruntime's on one frame in
 interleaved pairs (:func:`occkit.export.paired_onnx_latency`). The JSON says whether the machine was otherwise idle
@@ -32,6 +33,8 @@ from occkit.data.collate import collate
 from occkit.engine.evaluate import evaluation_dataset
 from occkit.export import (
     DEFAULT_OPSET,
+    INT8_CALIBRATION,
+    INT8_OPERATORS,
     _feeds,
     _session,
     export_onnx,
@@ -43,7 +46,8 @@ from occkit.metrics.confusion import OccupancyMetric
 from occkit.models.deployment import deploy
 
 
-def measure(entry: str, data: Path, calibration_frames: int, pairs: int) -> dict:
+def measure(entry: str, data: Path, calibration_frames: int, pairs: int,
+            operators: tuple[str, ...] | None = INT8_OPERATORS, method: str = INT8_CALIBRATION) -> dict:  # fmt: skip
     experiment = zoo.experiment(entry)
     experiment = dataclasses.replace(experiment, data=dataclasses.replace(experiment.data, root=str(data)))
     model = zoo.build(entry, weights="synthetic").eval()
@@ -59,7 +63,7 @@ def measure(entry: str, data: Path, calibration_frames: int, pairs: int) -> dict
         fp32, int8 = Path(folder) / "fp32.onnx", Path(folder) / "int8.onnx"
         with torch.no_grad():
             export_onnx(net, net.inputs(reference), fp32, DEFAULT_OPSET)
-        quantizer = quantize_int8(fp32, int8, calibration)
+        quantizer = quantize_int8(fp32, int8, calibration, op_types=operators, method=method)
         sessions = {"onnx_fp32": _session(fp32), "onnx_int8": _session(int8)}
         started = time.perf_counter()
         for index in range(len(val)):
@@ -108,13 +112,22 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--entry", default="flashocc_tiny", help="a zoo entry with shipped weights")
     parser.add_argument("--data", type=Path, default=Path("data/demo"), help="the world (default: the demo's)")
     parser.add_argument("--calibration-frames", type=int, default=8, help="training key frames to calibrate on")
+    parser.add_argument("--operators", default=",".join(INT8_OPERATORS or ()) or "all",
+                        help="operators to quantize, comma-separated, or all (default: occkit export's)")
+    parser.add_argument("--calibration", default=INT8_CALIBRATION, choices=("MinMax", "Percentile", "Entropy"),
+                        help=f"calibration method (default {INT8_CALIBRATION}, occkit export's)")
     parser.add_argument("--pairs", type=int, default=10, help="interleaved latency pairs")
-    parser.add_argument("--out", type=Path, default=None, help="JSON (default docs/results/cpu/int8_ENTRY.json)")
+    parser.add_argument("--out", type=Path, default=None,
+                        help="JSON (default docs/results/cpu/int8/ENTRY.json, or ENTRY_OPERATORS_METHOD.json when the "
+                             "settings are not the default ones)")  # fmt: skip
     args = parser.parse_args(argv)
     if not args.data.is_dir():
         raise SystemExit(f"--data {args.data} does not exist: run occkit demo (it writes data/demo) or occkit sim")
-    result = measure(args.entry, args.data, args.calibration_frames, args.pairs)
-    out = args.out or Path("docs/results/cpu") / f"int8_{args.entry}.json"
+    operators = None if args.operators == "all" else tuple(args.operators.split(","))
+    result = measure(args.entry, args.data, args.calibration_frames, args.pairs, operators, args.calibration)
+    default = operators == INT8_OPERATORS and args.calibration == INT8_CALIBRATION
+    name = args.entry if default else f"{args.entry}_{args.operators.replace(',', '-')}_{args.calibration}"
+    out = args.out or Path("docs/results/cpu/int8") / f"{name}.json"
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(result, indent=1) + "\n")
     miou, latency = result["miou"], result["latency_ms"]

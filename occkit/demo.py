@@ -147,10 +147,10 @@ def _render(models: dict, datasets: dict, path: Path, title: str, frames: int = 
                 own = collate([datasets[name][int(index)]])
                 assert own.tokens == batch.tokens, "the models' validation datasets list different frames"
                 panels.append((name, model.predict(own).semantics[0].numpy()))
-        for column, (title, grid) in enumerate(panels):
+        for column, (panel, grid) in enumerate(panels):
             axis = axes[row, column]
             axis.imshow(bev_image(grid, mask, DEMO_SPACE.taxonomy))
-            axis.set_title(f"{title}\n{batch.tokens[0][:8]}" if row == 0 else batch.tokens[0][:8], fontsize=9)
+            axis.set_title(f"{panel}\n{batch.tokens[0][:8]}" if row == 0 else batch.tokens[0][:8], fontsize=9)
             axis.axis("off")
     fig.suptitle(f"{title}: held-out frames, bird's-eye view (forward up), camera-visible voxels", fontsize=10)
     fig.tight_layout()
