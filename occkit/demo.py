@@ -34,6 +34,7 @@ from occkit.metrics.confusion import OccupancyMetric
 from occkit.shipped import SYNTHETIC, card, shipped_entries
 from occkit.sim.generate import SimConfig, simulate_dataset
 from occkit.viz.bev import bev_image
+from occkit.viz.palette import add_class_legend
 
 __all__ = ["run_demo", "check_world", "baselines", "learned", "DEMO_MODELS", "DEMO_WORLD", "GROUND_CLASSES"]
 
@@ -136,8 +137,9 @@ def _render(models: dict, datasets: dict, path: Path, title: str, frames: int = 
     """
     first = next(iter(datasets.values()))
     picks = np.linspace(0, len(first) - 1, frames).round().astype(int)
-    fig = new_figure(3.2 * (1 + len(models)), 3.3 * frames)
+    fig = new_figure(3.2 * (1 + len(models)) + 1.6, 3.3 * frames)
     axes = fig.subplots(frames, 1 + len(models), squeeze=False)
+    shown: set[int] = set()  # the classes drawn, for the legend
     for row, index in enumerate(picks):
         batch = collate([first[int(index)]])
         mask = batch.mask_camera[0].numpy()
@@ -148,13 +150,15 @@ def _render(models: dict, datasets: dict, path: Path, title: str, frames: int = 
                 assert own.tokens == batch.tokens, "the models' validation datasets list different frames"
                 panels.append((name, model.predict(own).semantics[0].numpy()))
         for column, (panel, grid) in enumerate(panels):
+            shown.update(np.unique(grid[mask > 0]).tolist())
             axis = axes[row, column]
             axis.imshow(bev_image(grid, mask, DEMO_SPACE.taxonomy))
             axis.set_title(f"{panel}\n{batch.tokens[0][:8]}" if row == 0 else batch.tokens[0][:8], fontsize=9)
             axis.axis("off")
     fig.suptitle(f"{title}: held-out frames, bird's-eye view (forward up), camera-visible voxels", fontsize=10)
+    add_class_legend(axes[0, -1], shown, taxonomy=DEMO_SPACE.taxonomy)
     fig.tight_layout()
-    return save_figure(fig, path, dpi=110)
+    return save_figure(fig, path, dpi=110, tight=True)
 
 
 def _report(out: Path, shipped: dict, trained: dict, baseline: dict, seconds: float, renders: dict) -> Path:
