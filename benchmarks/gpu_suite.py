@@ -50,8 +50,7 @@ from occkit.data.dataset import OccupancyDataset
 from occkit.data.loader import sample_loader
 from occkit.engine.reference_frame import simulate_reference_world
 from occkit.machine import gpu_driver
-from occkit.models.inference import prepare_for_inference
-from occkit.models.sparse import spconv
+from occkit.models.inference import has_sparse_convolutions, prepare_for_inference
 from occkit.shipped import shipped_entries
 
 MODELS = ("flashocc_m0", "flashocc_m1", "da_occ", "da_occ_16f", "daocc", "daocc_no_detection")
@@ -95,16 +94,12 @@ def agreement(entry: str, device: torch.device, data: Path | None) -> dict[str, 
                 predicted = model(batch).occupancy.float().argmax(dim=1)
             shares[precision] = float((predicted == reference).float().mean())
             shares[f"{precision}_outside_near_ties"] = float((predicted == reference)[clear].float().mean())
-        if device.type == "cuda" and not _sparse(model):
+        if device.type == "cuda" and not has_sparse_convolutions(model):
             graphed = prepare_for_inference(copy.deepcopy(model), ("fixed_calibration", "cuda_graph"))
             for _ in range(2):  # the capture, then a replay
                 predicted = graphed(batch).occupancy.argmax(dim=1)
             shares["fp32_cuda_graph"] = float((predicted == reference).float().mean())
     return {"weights": weights or "random", **shares}
-
-
-def _sparse(model: torch.nn.Module) -> bool:
-    return any(isinstance(m, spconv.SparseModule) for m in model.modules())
 
 
 def training_throughput(entry: str, device: torch.device, root: Path, steps: int, warmup: int, workers: int) -> dict:

@@ -41,6 +41,9 @@ class NetworkGraphs:
 
     def __init__(self) -> None:
         self._graphs: dict[tuple, _CapturedNetwork] = {}
+        # The last plan's non-tensor description: a reused plan (fixed_calibration) is described once, not per call.
+        self._plan: Any = None
+        self._plan_fields = ""
 
     def __deepcopy__(self, memo: dict) -> NetworkGraphs:
         return NetworkGraphs()
@@ -49,7 +52,7 @@ class NetworkGraphs:
         return {}
 
     def __setstate__(self, state: dict) -> None:
-        self._graphs = {}
+        self.__init__()
 
     def __len__(self) -> int:
         """Graphs captured so far."""
@@ -60,7 +63,9 @@ class NetworkGraphs:
         tensors = _named_tensors(inputs, plan)
         if torch.is_grad_enabled() or not tensors or not all(t.is_cuda for t in tensors.values()):
             return network(inputs, plan)
-        key = _signature(inputs, plan, tensors)
+        if plan is not self._plan:
+            self._plan, self._plan_fields = plan, _plan_fields(plan, tensors)
+        key = _signature(inputs, tensors, self._plan_fields)
         graph = self._graphs.get(key)
         if graph is None:
             graph = self._graphs[key] = _CapturedNetwork(network, inputs, plan, tensors)
@@ -111,11 +116,15 @@ def _named_tensors(inputs: Mapping[str, Tensor], plan: Any) -> dict[str, Tensor]
     return named
 
 
-def _signature(inputs: Mapping[str, Tensor], plan: Any, tensors: dict[str, Tensor]) -> tuple:
+def _plan_fields(plan: Any, tensors: dict[str, Tensor]) -> str:
+    """The plan's non-tensor fields (its tensors left out), as text."""
+    names = [name.removeprefix("plan.") for name in tensors if name.startswith("plan.")]
+    return repr(plan_with_tensors(plan, dict.fromkeys(names)))
+
+
+def _signature(inputs: Mapping[str, Tensor], tensors: dict[str, Tensor], plan_fields: str) -> tuple:
     layout = tuple((name, tuple(t.shape), t.dtype, t.device, t.stride()) for name, t in tensors.items())
     others = tuple((name, repr(value)) for name, value in inputs.items() if not isinstance(value, Tensor))
-    plan_fields = repr(plan_with_tensors(plan, dict.fromkeys(name.removeprefix("plan.") for name in tensors
-                                                             if name.startswith("plan."))))  # fmt: skip
     autocast = (torch.is_autocast_enabled("cuda"), torch.get_autocast_dtype("cuda"))
     return layout, others, plan_fields, autocast
 

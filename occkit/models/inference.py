@@ -50,6 +50,7 @@ __all__ = [
     "compile_dense_stages",
     "capture_cuda_graphs",
     "eager_network",
+    "has_sparse_convolutions",
 ]
 
 #: The optional steps, in the order they are applied.
@@ -197,7 +198,8 @@ def to_channels_last(model: nn.Module) -> list[str]:
     return converted
 
 
-def _is_sparse(module: nn.Module) -> bool:
+def has_sparse_convolutions(module: nn.Module) -> bool:
+    """Whether ``module`` holds spconv layers (which neither ``compile`` nor ``cuda_graph`` takes)."""
     return any(isinstance(m, spconv.SparseModule) for m in module.modules())
 
 
@@ -211,7 +213,7 @@ def compile_dense_stages(model: nn.Module) -> list[str]:
     """
     compiled = []
     for name, child in model.named_children():
-        if next(child.parameters(), None) is None or _is_sparse(child):
+        if next(child.parameters(), None) is None or has_sparse_convolutions(child):
             continue
         child.forward = torch.compile(child.forward, options={"freezing": True, "triton.cudagraphs": False})
         compiled.append(name)
@@ -226,7 +228,7 @@ def capture_cuda_graphs(model: nn.Module) -> list[str]:
         ValueError: ``model`` is not on a CUDA device, or its network has sparse convolutions (spconv builds its
             rulebooks on the host, which a graph cannot capture).
     """
-    if _is_sparse(model):
+    if has_sparse_convolutions(model):
         raise ValueError("cuda_graph cannot capture sparse convolutions (spconv builds its rulebooks on the host)")
     parameter = next(model.parameters(), None)
     if parameter is None or parameter.device.type != "cuda":
