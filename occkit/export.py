@@ -19,12 +19,12 @@ for onnxruntime, the same network in PyTorch, and the model's full ``forward``.
 fp16 (``precision="fp16"``, :func:`convert_fp16`): the fp32 graph's weights and arithmetic in half precision, inputs
 and outputs kept fp32, the scatter-adds of the pooling kept fp32 (onnxruntime's CPU provider has no fp16
 scatter-add, and sums of many terms are what half precision rounds worst); for GPUs and TensorRT, and half the file.
-int8 (``precision="int8"``, :func:`quantize_int8`): onnxruntime's post-training static quantization of the fp32 graph
-(QDQ format, per-channel int8 weights, uint8 activations of the convolutions and matrix products, their ranges
-calibrated on key frames of the same rig at the 99.999th percentile), which
-stays standard ONNX (``QuantizeLinear`` / ``DequantizeLinear``). Its report gives the arg-max agreement and logit
-difference against the fp32 model (reported, not held to fp32's tolerance) and both graphs' onnxruntime latencies
-timed in interleaved pairs in one run, with their ratio.
+int8 (``precision="int8"``, :func:`occkit.quantization.quantize_int8`): onnxruntime's post-training static
+quantization of the fp32 graph (QDQ format, per-channel int8 weights, uint8 activations of the convolutions and matrix
+products, their ranges calibrated on key frames of the same rig at the 99.999th percentile, the layers int8 hurts most
+left fp32), which stays standard ONNX (``QuantizeLinear`` / ``DequantizeLinear``). Its report gives the arg-max
+agreement and logit difference against the fp32 model (reported, not held to fp32's tolerance) and both graphs'
+onnxruntime latencies timed in interleaved pairs in one run, with their ratio.
 """
 
 from __future__ import annotations
@@ -46,9 +46,11 @@ from occkit.config import to_dict
 from occkit.engine.checkpoint import check_compatible
 from occkit.engine.evaluate import load_trained
 from occkit.engine.reference_frame import SyntheticWorld, load_reference_frame
-from occkit.errors import UsageError, require_module
+from occkit.errors import UsageError
 from occkit.models.deployment import DeployedNetwork, deploy
+from occkit.onnx_runtime import open_session, paired_latency, require, to_feeds
 from occkit.outputs import check_report_file, report_beside, write_report
+from occkit.quantization import quantize_int8
 from occkit.types import Batch
 
 __all__ = [
@@ -66,21 +68,12 @@ __all__ = [
     "check_parity",
     "measure_latency",
     "export_model",
-    "quantize_int8",
     "convert_fp16",
     "PRECISIONS",
 ]
 
 #: ``occkit export --precision``.
 PRECISIONS = ("fp32", "fp16", "int8")
-#: The operators int8 quantizes by default (the arithmetic the int8 kernels speed up). Quantizing every operator the
-#: quantizer knows also rounds the view transform's gathers, products and sums: flashocc_tiny's shipped weights lost
-#: 5.8 mIoU that way against 1.9 with these alone (docs/export.md).
-INT8_OPERATORS: tuple[str, ...] | None = ("Conv", "MatMul", "Gemm")
-#: onnxruntime's calibration method by default: ``Percentile`` clips the activations' rare outliers (MinMax lets one
-#: outlier stretch a tensor's 256 levels).
-INT8_CALIBRATION = "Percentile"
-
 DEFAULT_OPSET = 18
 #: Largest absolute difference between onnxruntime and PyTorch logits that passes.
 MAX_ABS_TOLERANCE = 1e-3
@@ -92,11 +85,6 @@ STANDARD_DOMAINS = ("", "ai.onnx")
 
 class ExportError(RuntimeError):
     """The exported graph is unusable: it needs operators outside the standard ONNX domains."""
-
-
-def _require(module: str):
-    """Import an optional dependency of the export, or say how to get it (a MissingDependencyError: exit code 2)."""
-    return require_module(module, "ONNX export", "pip install onnx onnxruntime onnxscript (or the package's dev extra)")
 
 
 # ------------------------------------------------------------------------------------------------- what to export
@@ -203,7 +191,7 @@ def operator_counts(path: str | Path) -> dict[str, int]:
     Raises:
         ExportError: naming the operators outside :data:`STANDARD_DOMAINS` or the model's local functions.
     """
-    onnx = _require("onnx")
+    onnx = require("onnx")
     model = onnx.load(str(path), load_external_data=False)
     nodes = _nodes(model.graph) + [n for function in model.functions for n in function.node]
     foreign = sorted({f"{n.domain}::{n.op_type}" for n in nodes if n.domain not in STANDARD_DOMAINS})
@@ -218,7 +206,7 @@ def check_opset(opset: int) -> None:
     newest the installed ``onnx`` package defines."""
     if opset < 18:
         raise ValueError(f"opset {opset} is not available: the torch.export-based exporter writes opset 18 or newer")
-    newest = _require("onnx").defs.onnx_opset_version()
+    newest = require("onnx").defs.onnx_opset_version()
     if opset > newest:
         raise ValueError(f"opset {opset} is not available: the installed onnx package knows opsets up to {newest}")
 
@@ -249,6 +237,25 @@ def _file_opset(model) -> int:
     return next(entry.version for entry in model.opset_import if entry.domain in STANDARD_DOMAINS)
 
 
+def _translations() -> dict:
+    """PyTorch operators the exporter writes in other standard ONNX operators than its own choice.
+
+    ``softplus``: as ``Relu(x) + Log(1 + Exp(-Abs(x)))`` (with ``beta``: of ``beta * x``, over ``beta``), equal to
+    PyTorch's within float rounding (its ``threshold`` only skips a term below 2e-9). The exporter writes ONNX's
+    ``Softplus`` plus a ``Where`` for the threshold, and onnxruntime's CPU ``Softplus`` kernel is slow: on the
+    channel-to-height head's (1, 200, 200, 64) hidden layer 19.2 ms against 5.8 ms for these five vectorised
+    elementwise operators (2 threads), about a tenth of flashocc_tiny's fp32 pass and a quarter of its int8 one.
+    """
+    from onnxscript import opset18 as op
+
+    def softplus(x, beta: float = 1.0, threshold: float = 20.0):
+        scaled = op.Mul(x, op.CastLike(beta, x)) if beta != 1.0 else x
+        value = op.Add(op.Relu(scaled), op.Log(op.Add(op.Exp(op.Neg(op.Abs(scaled))), op.CastLike(1.0, x))))
+        return op.Div(value, op.CastLike(beta, x)) if beta != 1.0 else value
+
+    return {torch.ops.aten.softplus.default: softplus}
+
+
 def export_onnx(net: DeployedNetwork, inputs: dict[str, Tensor], path: str | Path,
                 opset: int = DEFAULT_OPSET) -> dict[str, Any]:
     """Export a fixed-rig network to ``path`` and check its operators.
@@ -263,7 +270,7 @@ def export_onnx(net: DeployedNetwork, inputs: dict[str, Tensor], path: str | Pat
         ``opset``, ``inputs`` / ``outputs`` (name, shape with dynamic axes named, dtype, description),
         ``op_types`` (operator -> count), ``files`` written.
     """
-    _require("onnxscript")
+    require("onnxscript")
     check_opset(opset)
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -271,7 +278,8 @@ def export_onnx(net: DeployedNetwork, inputs: dict[str, Tensor], path: str | Pat
     with torch.no_grad():
         output = net(*args)
         program = torch.onnx.export(net, args, dynamo=True, opset_version=opset, input_names=net.input_names,
-                                    output_names=net.output_names, dynamic_shapes=_dynamic_shapes(net), verbose=False)
+                                    output_names=net.output_names, dynamic_shapes=_dynamic_shapes(net), verbose=False,
+                                    custom_translation_table=_translations())  # fmt: skip
     # The weights file of an earlier export to the same path would be left behind, unreferenced.
     external = path.with_name(path.name + ".data")
     external.unlink(missing_ok=True)
@@ -279,7 +287,7 @@ def export_onnx(net: DeployedNetwork, inputs: dict[str, Tensor], path: str | Pat
     files = [str(path)] + ([str(external)] if external.is_file() else [])
     # The exporter falls back to the opset it built the graph in when its version converter fails (it logs the
     # converter's traceback and goes on): a file of another opset than asked for is an error, not a report.
-    written = _file_opset(_require("onnx").load(str(path), load_external_data=False))
+    written = _file_opset(require("onnx").load(str(path), load_external_data=False))
     if written != opset:
         raise ExportError(f"{path}: the exporter could not convert the graph to opset {opset} and wrote opset "
                           f"{written}; export with --opset {written}")
@@ -338,18 +346,6 @@ def _compare(onnx_logits: Tensor, reference: Tensor) -> dict[str, Any]:
     }
 
 
-def _session(path: str | Path):
-    """An onnxruntime CPU session using as many threads as PyTorch, so that their timings compare."""
-    ort = _require("onnxruntime")
-    options = ort.SessionOptions()
-    options.intra_op_num_threads = torch.get_num_threads()
-    return ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
-
-
-def _feeds(inputs: dict[str, Tensor]) -> dict[str, np.ndarray]:
-    return {name: tensor.detach().cpu().numpy() for name, tensor in inputs.items()}
-
-
 def check_parity(path: str | Path, model: nn.Module, net: DeployedNetwork, batch: Batch,
                  frames: list[Batch] | None = None) -> dict[str, Any]:  # fmt: skip
     """Run the exported graph in onnxruntime (CPU) on ``batch`` and compare it with ``model(batch)``; for a temporal
@@ -370,7 +366,7 @@ def check_parity(path: str | Path, model: nn.Module, net: DeployedNetwork, batch
         ``max_abs_diff``), and ``network_max_abs_diff``: the PyTorch network against the model; with a stream also
         ``frames`` and ``max_abs_diff_per_frame``.
     """
-    session = _session(path)
+    session = open_session(path)
     stream = frames if frames is not None else [batch]
     temporal = net.temporal is not None
     graph_memory = model.stream() if temporal else None
@@ -380,7 +376,7 @@ def check_parity(path: str | Path, model: nn.Module, net: DeployedNetwork, batch
     with torch.no_grad():
         for frame in stream:
             inputs = net.inputs(frame, graph_memory)
-            outputs = session.run(net.output_names, _feeds(inputs))
+            outputs = session.run(net.output_names, to_feeds(inputs))
             logits = torch.from_numpy(np.asarray(outputs[0])).float()
             if temporal:
                 state = torch.from_numpy(np.asarray(outputs[1])).to(frame.ego2global.device)
@@ -412,10 +408,10 @@ def measure_latency(path: str | Path, model: nn.Module, net: DeployedNetwork, ba
         ``providers``, ``torch_device``.
     """
     device = next(model.parameters()).device
-    session = _session(path)
+    session = open_session(path)
     with torch.no_grad():
         inputs = net.inputs(batch)
-        feeds, args = _feeds(inputs), tuple(inputs.values())
+        feeds, args = to_feeds(inputs), tuple(inputs.values())
         seconds = {
             "onnxruntime": _median_seconds(lambda: session.run(net.output_names, feeds), repeats,
                                            torch.device("cpu")),
@@ -431,69 +427,16 @@ def measure_latency(path: str | Path, model: nn.Module, net: DeployedNetwork, ba
 
 
 # ------------------------------------------------------------------------------------------------------- int8
-def quantize_int8(fp32_path: str | Path, out: str | Path, calibration: list[dict[str, np.ndarray]],
-                  op_types: tuple[str, ...] | None = INT8_OPERATORS, method: str = INT8_CALIBRATION) -> dict[str, Any]:
-    """Quantize the fp32 graph at ``fp32_path`` to int8 at ``out`` with onnxruntime's static post-training
-    quantization: QDQ nodes around the operators ``op_types`` (None: every one it knows), per-channel symmetric int8
-    weights, uint8 activations whose ranges ``method`` (``MinMax``, ``Percentile``, ``Entropy``) calibrates on the
-    ``calibration`` feeds (graph inputs of key frames of the graph's rig).
-
-    Returns:
-        ``calibration_frames``, the quantizer's settings, and ``op_types`` of the written graph.
-    """
-    quantization = _require("onnxruntime.quantization")
-    if not calibration:
-        raise ValueError("int8 quantization needs at least one calibration frame")
-
-    class Frames(quantization.CalibrationDataReader):
-        def __init__(self) -> None:
-            self.feeds = iter(calibration)
-
-        def get_next(self):
-            return next(self.feeds, None)
-
-    settings = {"quant_format": "QDQ", "per_channel": True, "weight_type": "QInt8", "activation_type": "QUInt8",
-                "calibrate_method": method, "op_types": None if op_types is None else list(op_types)}  # fmt: skip
-    with tempfile.TemporaryDirectory() as folder:
-        # onnxruntime's pre-processing (shape inference, graph optimisation) makes quantization cover more nodes.
-        prepared = Path(folder) / "prepared.onnx"
-        quantization.shape_inference.quant_pre_process(str(fp32_path), str(prepared), skip_symbolic_shape=True)
-        quantization.quantize_static(str(prepared), str(out), Frames(), quant_format=quantization.QuantFormat.QDQ,
-                                     per_channel=True, weight_type=quantization.QuantType.QInt8,
-                                     activation_type=quantization.QuantType.QUInt8, op_types_to_quantize=op_types,
-                                     calibrate_method=getattr(quantization.CalibrationMethod, method))  # fmt: skip
-    return {"calibration_frames": len(calibration), "quantizer": settings, "op_types": operator_counts(out)}
-
-
 def convert_fp16(fp32_path: str | Path, out: str | Path) -> dict[str, Any]:
     """The fp32 graph at ``fp32_path`` in half precision at ``out`` (onnxruntime's float16 converter): fp32 inputs and
     outputs, the scatter operators kept fp32. Returns the converter's settings and ``op_types``."""
-    onnx = _require("onnx")
+    onnx = require("onnx")
     from onnxruntime.transformers.float16 import convert_float_to_float16
 
     kept = ["ScatterElements", "ScatterND"]
     converted = convert_float_to_float16(onnx.load(str(fp32_path)), keep_io_types=True, op_block_list=kept)
     onnx.save(converted, str(out))
     return {"converter": "onnxruntime.transformers.float16", "kept_fp32": kept, "op_types": operator_counts(out)}
-
-
-def paired_onnx_latency(first: str | Path, second: str | Path, feeds: dict[str, np.ndarray], output_names: list[str],
-                        pairs: int) -> dict[str, Any]:  # fmt: skip
-    """Median onnxruntime latencies (ms) of two graphs on the same feeds, timed in interleaved pairs after a warm-up
-    of each (so that machine load hits both alike), and the median of the pairs' ratios ``second / first``."""
-    sessions = [_session(first), _session(second)]
-    for session in sessions:
-        session.run(output_names, feeds)
-    times: list[list[float]] = [[], []]
-    for _ in range(pairs):
-        for index, session in enumerate(sessions):
-            start = time.perf_counter()
-            session.run(output_names, feeds)
-            times[index].append(time.perf_counter() - start)
-    ratios = [b / a for a, b in zip(*times, strict=True)]
-    return {"first_ms": round(1000 * statistics.median(times[0]), 2),
-            "second_ms": round(1000 * statistics.median(times[1]), 2),
-            "ratio": statistics.median(ratios), "pairs": pairs, "threads": torch.get_num_threads()}  # fmt: skip
 
 
 # ------------------------------------------------------------------------------------------------- end to end
@@ -508,6 +451,7 @@ def export_model(
     sample: int | None = None,
     precision: str = "fp32",
     calibration_frames: int = 8,
+    keep_fp32: str | tuple[str, ...] = "auto",
 ) -> dict[str, Any]:
     """``occkit export``: load, export, check parity and write the report ``FILE.json`` beside ``out``
     (``FILE.onnx``; :func:`check_export_output`, before any work).
@@ -520,6 +464,7 @@ def export_model(
         precision: ``fp32``; ``fp16`` (:func:`convert_fp16`); or ``int8``: the fp32 graph quantized
             (:func:`quantize_int8`) on up to ``calibration_frames`` key frames of the sample's scene, single-frame
             models only.
+        keep_fp32: with int8, the layers left fp32 (:func:`occkit.quantization.quantize_int8`).
 
     Returns:
         The report written to the JSON file; ``report["parity"]["passed"]`` tells whether parity holds.
@@ -547,7 +492,7 @@ def export_model(
                               "config_difference": difference, "sample": source, "precision": precision}  # fmt: skip
     if precision != "fp32":
         return _export_reduced(precision, report, model, net, batch, frames[:calibration_frames], out, opset, check,
-                               repeats, json_path, start)  # fmt: skip
+                               repeats, json_path, start, keep_fp32)  # fmt: skip
     report.update(export_onnx(net, inputs, out, opset))
     report.update(exporter=f"torch.onnx.export(dynamo=True), torch {torch.__version__}",
                   export_seconds=round(time.perf_counter() - start, 1),
@@ -555,7 +500,7 @@ def export_model(
     if check:
         report["parity"] = check_parity(out, model, net, batch, frames if temporal else None)
         report["latency_ms"] = measure_latency(out, model, net, batch, repeats)
-        report["onnxruntime"] = _require("onnxruntime").__version__
+        report["onnxruntime"] = require("onnxruntime").__version__
     write_report(json_path, report, COMMAND)
     report["json"] = str(json_path)
     return report
@@ -563,18 +508,23 @@ def export_model(
 
 def _export_reduced(
     precision: str, report: dict[str, Any], model: nn.Module, net: DeployedNetwork, batch: Batch,
-    frames: list[Batch], out: Path, opset: int, check: bool, repeats: int, json_path: Path, start: float
+    frames: list[Batch], out: Path, opset: int, check: bool, repeats: int, json_path: Path, start: float,
+    keep_fp32: str | tuple[str, ...] = "auto",
 ) -> dict[str, Any]:
     """The fp16 / int8 half of :func:`export_model`: the fp32 graph in a temporary folder, converted into ``out``."""
     with torch.no_grad():
         inputs = net.inputs(batch)
-        calibration = [_feeds(net.inputs(frame)) for frame in frames] if precision == "int8" else []
+        calibration = [to_feeds(net.inputs(frame)) for frame in frames] if precision == "int8" else []
     with tempfile.TemporaryDirectory() as folder:
         fp32 = Path(folder) / "fp32.onnx"
         fp32_report = export_onnx(net, inputs, fp32, opset)
         out.parent.mkdir(parents=True, exist_ok=True)
         report.update(fp32_report)
-        conversion = quantize_int8(fp32, out, calibration) if precision == "int8" else convert_fp16(fp32, out)
+        if precision == "int8":
+            conversion = quantize_int8(fp32, out, calibration, keep_fp32=keep_fp32)
+            conversion["op_types"] = operator_counts(out)
+        else:
+            conversion = convert_fp16(fp32, out)
         report[precision] = conversion
         report.update(op_types=conversion["op_types"], files=[str(out)],
                       exporter=f"torch.onnx.export(dynamo=True), torch {torch.__version__}; "
@@ -584,12 +534,12 @@ def _export_reduced(
             parity = check_parity(out, model, net, batch)
             parity["passed"] = None  # not held to fp32's tolerance: a reduced precision's cost is measured in mIoU
             report["parity"] = parity
-            latency = paired_onnx_latency(fp32, out, _feeds(inputs), net.output_names, max(repeats, 3))
+            latency = paired_latency(fp32, out, to_feeds(inputs), net.output_names, max(repeats, 3))
             report["latency_ms"] = {"onnxruntime_fp32": latency["first_ms"],
                                     f"onnxruntime_{precision}": latency["second_ms"],
                                     f"{precision}_over_fp32": latency["ratio"], "pairs": latency["pairs"],
                                     "threads": latency["threads"]}  # fmt: skip
-            report["onnxruntime"] = _require("onnxruntime").__version__
+            report["onnxruntime"] = require("onnxruntime").__version__
     write_report(json_path, report, COMMAND)
     report["json"] = str(json_path)
     return report

@@ -174,7 +174,7 @@ def test_output_checks(tmp_path):
 def test_a_missing_optional_extra_is_the_users_to_install_exit_2(tmp_path, capsys, monkeypatch):
     from occkit.data.corruptions import _image_transform
     from occkit.errors import MissingDependencyError
-    from occkit.export import _require
+    from occkit.onnx_runtime import require
 
     for module in ("open3d", "albumentations", "onnxruntime"):
         monkeypatch.setitem(sys.modules, module, None)  # an import of it fails, installed or not
@@ -188,5 +188,5 @@ def test_a_missing_optional_extra_is_the_users_to_install_exit_2(tmp_path, capsy
     with pytest.raises(MissingDependencyError, match=r"an image corruption needs albumentations .*\[robustness\]"):
         _image_transform("brightness", {"brightness": 0.1}, seed=0)
     with pytest.raises(MissingDependencyError, match="ONNX export needs onnxruntime"):
-        _require("onnxruntime")
+        require("onnxruntime")
     assert is_input_error(MissingDependencyError("x")) and issubclass(MissingDependencyError, ImportError)

@@ -150,6 +150,17 @@ def test_functional_matches_roll_and_concatenation_references(direction, padding
     )
 
 
+@pytest.mark.parametrize("direction", DIRECTIONS)
+def test_the_exported_graphs_row_gather_builds_the_same_band(direction, monkeypatch):
+    generator = torch.Generator().manual_seed(3)
+    x = torch.randn(SHAPE, generator=generator)
+    per_sample = torch.randn(SHAPE[0], SHAPE[1], _length(direction), generator=generator)
+    eager = [direction_aware_conv(x, kernel, direction) for kernel in (per_sample, per_sample[0])]
+    monkeypatch.setattr(torch.onnx, "is_in_onnx_export", lambda: True)
+    for kernel, expected in zip((per_sample, per_sample[0]), eager, strict=True):
+        assert torch.equal(direction_aware_conv(x, kernel, direction), expected)
+
+
 @pytest.mark.parametrize("padding", PADDINGS)
 @pytest.mark.parametrize("direction", DIRECTIONS)
 def test_module_with_known_static_kernel(direction, padding):

@@ -296,9 +296,11 @@ def test_reduced_precision_exports_keep_standard_operators_and_time_themselves_a
 ):
     exporter_available()
     out = tmp_path / f"{precision}.onnx"
+    # Every layer quantized (--keep-fp32 none): the sensitivity sweep is tests/test_quantization.py's.
     assert main(["export", "--model", "flashocc_tiny", "--out", str(out), "--precision", precision,
-                 "--calibration-frames", "2", "--repeats", "1"]) == 0  # fmt: skip
-    assert f"{precision} / fp32 = " in capsys.readouterr().out
+                 "--calibration-frames", "2", "--repeats", "1", "--keep-fp32", "none"]) == 0  # fmt: skip
+    printed = capsys.readouterr().out
+    assert f"{precision} / fp32 = " in printed and ("layers left fp32: none" in printed) == (precision == "int8")
     report = json.loads(out.with_suffix(".json").read_text())
     assert report["precision"] == precision and operators | {"Conv"} <= set(operator_counts(out))
     assert report["int8"]["calibration_frames"] == 2 if precision == "int8" else "ScatterElements" in \

@@ -34,7 +34,8 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     # training, evaluation, prediction; where a command's model comes from
     ("occkit.engine", "occkit.model_source"),
     # consumers of trained models
-    ("occkit.bench", "occkit.export", "occkit.viz", "occkit.environment", "occkit.robustness"),
+    ("occkit.bench", "occkit.export", "occkit.onnx_runtime", "occkit.quantization", "occkit.viz", "occkit.environment",
+     "occkit.robustness"),
     ("occkit.demo",),
     ("occkit.cli", "occkit.commands", "occkit.__main__"),
 )  # fmt: skip

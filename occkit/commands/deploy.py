@@ -72,6 +72,19 @@ def add_export(parser: argparse.ArgumentParser) -> None:
                              "timed against the fp32 graph in one run (default fp32)")  # fmt: skip
     parser.add_argument("--calibration-frames", type=integer(1, 10_000), default=8,
                         help="with --precision int8: key frames of the scene calibrating the ranges (default 8)")
+    parser.add_argument("--keep-fp32", default="auto", metavar="auto|none|NODE,...",
+                        help="with --precision int8: the layers left fp32. auto (default): those whose int8 version "
+                             "alone changes the arg-max of over 5%% of the calibration frames' voxels (each layer "
+                             "is quantized alone and run: a minute or more); none; or node names of onnxruntime's "
+                             "pre-processed graph, comma-separated, as the report's int8.sensitivity lists "
+                             "them")  # fmt: skip
+
+
+def _keep_fp32(text: str) -> str | tuple[str, ...]:
+    """``--keep-fp32``: ``auto``, ``none`` (no layer) or comma-separated node names."""
+    if text == "auto":
+        return "auto"
+    return () if text == "none" else tuple(name for name in text.split(",") if name)
 
 
 def run_export(args: argparse.Namespace) -> int:
@@ -88,7 +101,8 @@ def run_export(args: argparse.Namespace) -> int:
     try:
         report = export_model(args.model, args.out, checkpoint=args.ckpt, data=args.data, opset=args.opset,
                               check=not args.no_check, repeats=args.repeats, sample=args.sample,
-                              precision=args.precision, calibration_frames=args.calibration_frames)  # fmt: skip
+                              precision=args.precision, calibration_frames=args.calibration_frames,
+                              keep_fp32=_keep_fp32(args.keep_fp32))  # fmt: skip
     except ExportError as error:
         print(f"occkit export: error: {error}", file=sys.stderr)
         return 1
@@ -107,6 +121,9 @@ def run_export(args: argparse.Namespace) -> int:
         print(f"{reduced} against the fp32 model on {report['sample']['token']}: max |logit difference| "
               f"{parity['max_abs_diff']:.2e}, arg-max agreement {100 * parity['argmax_agreement']:.2f}%"
               + (f" ({frames} calibration frames)" if frames else ""))  # fmt: skip
+        if reduced == "int8":
+            kept = report["int8"]["kept_fp32"]
+            print(f"layers left fp32: {', '.join(layer['node'] for layer in kept) if kept else 'none'}")
         print(f"median onnxruntime latency ({latency['threads']} threads, {latency['pairs']} interleaved pairs): "
               f"fp32 {latency['onnxruntime_fp32']:.1f} ms, {reduced} {latency[f'onnxruntime_{reduced}']:.1f} ms "
               f"({reduced} / fp32 = {latency[f'{reduced}_over_fp32']:.2f})")  # fmt: skip
