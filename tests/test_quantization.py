@@ -8,6 +8,7 @@ import torch
 from torch import nn
 
 from occkit import quantization
+from occkit.commands.deploy import _kept_fp32_line
 from occkit.export import operator_counts
 
 pytest.importorskip("onnxruntime")
@@ -61,6 +62,8 @@ def test_auto_keeps_fp32_exactly_the_layers_above_the_threshold(fp32_graph, tmp_
     report = quantization.quantize_int8(path, tmp_path / "auto.onnx", calibration)
     assert len(report["sensitivity"]) == 2 and report["quantizer"]["max_layer_disagreement"] == 0.05
     assert report["kept_fp32"] == [layer for layer in report["sensitivity"] if layer["disagreement"] > 0.05]
+    line = _kept_fp32_line(report)  # what occkit export prints
+    assert "over 5% of the calibration voxels" in line and "of 2 layers, the most sensitive node_" in line
     monkeypatch.setattr(quantization, "MAX_LAYER_DISAGREEMENT", -1.0)  # every layer "hurts": none is quantized
     report = quantization.quantize_int8(path, tmp_path / "none.onnx", calibration)
     assert len(report["kept_fp32"]) == 2 and _float_convolutions(tmp_path / "none.onnx") == 2

@@ -87,6 +87,20 @@ def _keep_fp32(text: str) -> str | tuple[str, ...]:
     return () if text == "none" else tuple(name for name in text.split(",") if name)
 
 
+def _kept_fp32_line(int8: dict) -> str:
+    """Which layers int8 left fp32, and for ``--keep-fp32 auto`` why."""
+    kept = ", ".join(f"{layer['node']}" + (f" ({100 * layer['disagreement']:.1f}%)" if "disagreement" in layer else "")
+                     for layer in int8["kept_fp32"]) or "none"  # fmt: skip
+    sensitivity = int8.get("sensitivity")
+    if not sensitivity:
+        return f"layers left fp32: {kept}"
+    worst = max(sensitivity, key=lambda layer: layer["disagreement"])
+    limit = 100 * int8["quantizer"]["max_layer_disagreement"]
+    return (f"layers left fp32 (quantized alone, each changes the arg-max of over {limit:g}% of the calibration "
+            f"voxels): {kept}; of {len(sensitivity)} layers, the most sensitive {worst['node']} at "
+            f"{100 * worst['disagreement']:.1f}% ({int8['sensitivity_seconds']:.0f} s)")
+
+
 def run_export(args: argparse.Namespace) -> int:
     from occkit.export import ExportError, check_export_output, check_opset, export_model
 
@@ -122,8 +136,7 @@ def run_export(args: argparse.Namespace) -> int:
               f"{parity['max_abs_diff']:.2e}, arg-max agreement {100 * parity['argmax_agreement']:.2f}%"
               + (f" ({frames} calibration frames)" if frames else ""))  # fmt: skip
         if reduced == "int8":
-            kept = report["int8"]["kept_fp32"]
-            print(f"layers left fp32: {', '.join(layer['node'] for layer in kept) if kept else 'none'}")
+            print(_kept_fp32_line(report["int8"]))
         print(f"median onnxruntime latency ({latency['threads']} threads, {latency['pairs']} interleaved pairs): "
               f"fp32 {latency['onnxruntime_fp32']:.1f} ms, {reduced} {latency[f'onnxruntime_{reduced}']:.1f} ms "
               f"({reduced} / fp32 = {latency[f'{reduced}_over_fp32']:.2f})")  # fmt: skip
