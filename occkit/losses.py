@@ -295,6 +295,11 @@ def lovasz_softmax(
     return counted_lovasz_softmax(CountedVoxels(probs, labels, mask, from_logits=from_logits), classes)
 
 
+#: The integer type of each float type's size (:func:`counted_lovasz_softmax` sorts errors by their bits).
+_SAME_SIZE_INTEGER = {torch.float32: torch.int32, torch.float64: torch.int64, torch.float16: torch.int16,
+                      torch.bfloat16: torch.int16}  # fmt: skip
+
+
 def counted_lovasz_softmax(voxels: CountedVoxels, classes: str = "present") -> Tensor:
     """:func:`lovasz_softmax` of voxels gathered once."""
     if classes not in ("present", "all"):
@@ -305,8 +310,13 @@ def counted_lovasz_softmax(voxels: CountedVoxels, classes: str = "present") -> T
         flat, truth = flat[:, present], truth[:, present]
     # One contiguous row per class (sorting along rows is quicker than down the columns of (P, K)).
     flat, truth = flat.t().contiguous(), truth.t().contiguous()  # (classes, P)
-    errors, order = (truth - flat).abs().sort(dim=1, descending=True)
-    per_class = (errors * lovasz_grad(truth.gather(1, order))).sum(1)  # (classes averaged,)
+    errors = (truth - flat).abs()
+    # Non-negative floats sort as their bit patterns read as integers, and PyTorch sorts integers faster on the CPU
+    # (radix): about 0.7 of the float sort's time for 15 x 250,000 errors, forward and backward, the same order up to
+    # ties (which leave the Lovasz extension unchanged).
+    keys = errors.detach().view(_SAME_SIZE_INTEGER[errors.dtype]) if errors.dtype in _SAME_SIZE_INTEGER else errors
+    order = keys.sort(dim=1, descending=True).indices
+    per_class = (errors.gather(1, order) * lovasz_grad(truth.gather(1, order))).sum(1)  # (classes averaged,)
     return per_class.sum() / max(per_class.numel(), 1)
 
 

@@ -211,6 +211,17 @@ def test_lovasz_matches_the_reference_on_soft_probabilities():
     assert lovasz_softmax(probs, labels, mask=mask).item() == pytest.approx(expected, rel=1e-9)
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float16, torch.bfloat16])
+def test_lovasz_sorts_errors_by_their_bits_in_every_float_type_ties_included(dtype):
+    generator = torch.Generator().manual_seed(4)
+    # Probabilities on a coarse grid: many equal errors, whose order the bit sort may break differently.
+    probs = (torch.rand(1, 4, 40, 30, generator=generator) * 4).round().add(0.5).softmax(1).mul(8).round().div(8)
+    labels = torch.randint(0, 4, (1, 40, 30), generator=generator)
+    expected = reference_lovasz(probs.double(), labels, "present")
+    tolerance = 1e-6 if dtype == torch.float32 else 1e-2  # half precision rounds the probabilities themselves
+    assert lovasz_softmax(probs.to(dtype), labels).double().item() == pytest.approx(expected, abs=tolerance)
+
+
 def test_lovasz_with_nothing_counted_is_zero():
     probs = torch.full((1, 3, 4), 1 / 3, requires_grad=True)
     labels = torch.tensor([[0, 1, 2, 255]])
