@@ -65,7 +65,8 @@ def quantizable_layers(prepared: str | Path, op_types: Sequence[str] | None = IN
 def _quantize(prepared: Path, out: Path, calibration: list[dict[str, np.ndarray]], op_types: Sequence[str] | None,
               method: str, exclude: Sequence[str] = (), ranges: Path | None = None) -> None:  # fmt: skip
     """quantize_static with the module's settings; ``ranges``: a file caching the calibrated ranges, written by the
-    first call and read by the next (onnxruntime 1.24 and newer; older ones calibrate again)."""
+    first call and read by the next (where onnxruntime's quantize_static takes a ``calibration_cache_path``; older
+    versions calibrate again each time)."""
     quantization = require("onnxruntime.quantization")
     cache = {}
     if ranges is not None and "calibration_cache_path" in inspect.signature(quantization.quantize_static).parameters:
@@ -152,8 +153,9 @@ def quantize_int8(fp32_path: str | Path, out: str | Path, calibration: list[dict
         else:
             unknown = sorted(set(keep_fp32) - set(layers))
             if unknown:
-                raise ValueError(f"keep_fp32 names {', '.join(unknown)}, not quantizable layers of the prepared graph "
-                                 f"(occkit.quantization.quantizable_layers lists them)")
+                raise ValueError(f"keep_fp32 (--keep-fp32) names {', '.join(unknown)}, not quantizable layers of the "
+                                 f"prepared graph: an export with --keep-fp32 auto lists them in its report's "
+                                 f"int8.sensitivity")  # fmt: skip
             kept = [layers[name] for name in keep_fp32]
         settings["max_layer_disagreement"] = MAX_LAYER_DISAGREEMENT if keep_fp32 == "auto" else None
         report["kept_fp32"] = kept

@@ -79,5 +79,5 @@ def test_named_layers_stay_fp32_and_unknown_names_are_refused(fp32_graph, tmp_pa
     report = quantization.quantize_int8(path, tmp_path / "one.onnx", calibration, keep_fp32=(first,))
     assert [layer["node"] for layer in report["kept_fp32"]] == [first]
     assert _float_convolutions(tmp_path / "one.onnx") == 1
-    with pytest.raises(ValueError, match="keep_fp32 names no_such_node, not quantizable layers"):
+    with pytest.raises(ValueError, match=r"keep_fp32 \(--keep-fp32\) names no_such_node, not quantizable layers"):
         quantization.quantize_int8(path, tmp_path / "x.onnx", calibration, keep_fp32=("no_such_node",))
