@@ -243,7 +243,7 @@ def _translations() -> dict:
     ``softplus``: as ``Relu(x) + Log(1 + Exp(-Abs(x)))`` (with ``beta``: of ``beta * x``, over ``beta``), equal to
     PyTorch's within float rounding (its ``threshold`` only skips a term below 2e-9). The exporter writes ONNX's
     ``Softplus`` plus a ``Where`` for the threshold, and onnxruntime's CPU ``Softplus`` kernel is slow: on the
-    channel-to-height head's (1, 200, 200, 64) hidden layer 19.2 ms against 5.8 ms for these five vectorised
+    channel-to-height head's (1, 200, 200, 64) hidden layer 19.2 ms against 5.8 ms for these seven vectorised
     elementwise operators (2 threads), about a tenth of flashocc_tiny's fp32 pass and a quarter of its int8 one.
     """
     from onnxscript import opset18 as op
