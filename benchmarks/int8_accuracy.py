@@ -37,7 +37,7 @@ from occkit.machine import machine_info
 from occkit.metrics.confusion import OccupancyMetric
 from occkit.models.deployment import deploy
 from occkit.onnx_runtime import open_session, paired_latency, to_feeds
-from occkit.quantization import INT8_CALIBRATION, INT8_OPERATORS, quantize_int8
+from occkit.quantization import INT8_CALIBRATION, INT8_OPERATORS, parse_keep_fp32, quantize_int8
 
 
 def measure(entry: str, data: Path, calibration_frames: int, pairs: int,
@@ -126,7 +126,7 @@ def main(argv: list[str] | None = None) -> int:
     if not args.data.is_dir():
         raise SystemExit(f"--data {args.data} does not exist: run occkit demo (it writes data/demo) or occkit sim")
     operators = None if args.operators == "all" else tuple(args.operators.split(","))
-    keep = args.keep_fp32 if args.keep_fp32 == "auto" else tuple(args.keep_fp32.split(",")) * (args.keep_fp32 != "none")
+    keep = parse_keep_fp32(args.keep_fp32)
     result = measure(args.entry, args.data, args.calibration_frames, args.pairs, operators, args.calibration, keep)
     default = operators == INT8_OPERATORS and args.calibration == INT8_CALIBRATION
     name = args.entry if default else f"{args.entry}_{args.operators.replace(',', '-')}_{args.calibration}"

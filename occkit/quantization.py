@@ -29,7 +29,7 @@ import numpy as np
 from occkit.onnx_runtime import open_session, require
 
 __all__ = ["INT8_OPERATORS", "INT8_CALIBRATION", "MAX_LAYER_DISAGREEMENT", "prepare", "quantizable_layers",
-           "layer_sensitivity", "quantize_int8"]  # fmt: skip
+           "layer_sensitivity", "quantize_int8", "parse_keep_fp32"]  # fmt: skip
 
 #: The operators int8 quantizes by default (the arithmetic the int8 kernels speed up). Quantizing every operator the
 #: quantizer knows also rounds the view transform's gathers, products and sums: flashocc_tiny's shipped weights lost
@@ -41,6 +41,14 @@ INT8_CALIBRATION = "Percentile"
 #: A layer whose int8 version alone changes the arg-max class of more than this fraction of the calibration frames'
 #: voxels stays fp32 (``keep_fp32="auto"``).
 MAX_LAYER_DISAGREEMENT = 0.05
+
+
+def parse_keep_fp32(text: str) -> str | tuple[str, ...]:
+    """``--keep-fp32`` as :func:`quantize_int8` takes it: ``auto``, ``none`` (no layer: ``()``) or comma-separated
+    node names."""
+    if text == "auto":
+        return "auto"
+    return () if text == "none" else tuple(name for name in text.split(",") if name)
 
 
 def prepare(fp32_path: str | Path, out: str | Path) -> Path:
@@ -141,7 +149,6 @@ def quantize_int8(fp32_path: str | Path, out: str | Path, calibration: list[dict
     report: dict[str, Any] = {"calibration_frames": len(calibration), "quantizer": settings}
     with tempfile.TemporaryDirectory() as folder:
         prepared, ranges = prepare(fp32_path, Path(folder) / "prepared.onnx"), Path(folder) / "ranges.json"
-        layers = {layer["node"]: layer for layer in quantizable_layers(prepared, op_types)}
         if isinstance(keep_fp32, str):
             if keep_fp32 != "auto":
                 raise ValueError(f"keep_fp32 is 'auto' or a list of node names, got {keep_fp32!r}")
@@ -151,6 +158,7 @@ def quantize_int8(fp32_path: str | Path, out: str | Path, calibration: list[dict
             report["sensitivity_seconds"] = round(time.perf_counter() - start, 1)
             kept = [layer for layer in sensitivity if layer["disagreement"] > MAX_LAYER_DISAGREEMENT]
         else:
+            layers = {layer["node"]: layer for layer in quantizable_layers(prepared, op_types)}
             unknown = sorted(set(keep_fp32) - set(layers))
             if unknown:
                 raise ValueError(f"keep_fp32 (--keep-fp32) names {', '.join(unknown)}, not quantizable layers of the "

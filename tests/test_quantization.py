@@ -81,3 +81,8 @@ def test_named_layers_stay_fp32_and_unknown_names_are_refused(fp32_graph, tmp_pa
     assert _float_convolutions(tmp_path / "one.onnx") == 1
     with pytest.raises(ValueError, match=r"keep_fp32 \(--keep-fp32\) names no_such_node, not quantizable layers"):
         quantization.quantize_int8(path, tmp_path / "x.onnx", calibration, keep_fp32=("no_such_node",))
+
+
+def test_keep_fp32_reads_auto_none_or_node_names():
+    assert quantization.parse_keep_fp32("auto") == "auto" and quantization.parse_keep_fp32("none") == ()
+    assert quantization.parse_keep_fp32("node_a,node_b,") == ("node_a", "node_b")

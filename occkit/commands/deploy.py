@@ -80,13 +80,6 @@ def add_export(parser: argparse.ArgumentParser) -> None:
                              "them")  # fmt: skip
 
 
-def _keep_fp32(text: str) -> str | tuple[str, ...]:
-    """``--keep-fp32``: ``auto``, ``none`` (no layer) or comma-separated node names."""
-    if text == "auto":
-        return "auto"
-    return () if text == "none" else tuple(name for name in text.split(",") if name)
-
-
 def _kept_fp32_line(int8: dict) -> str:
     """Which layers int8 left fp32, and for ``--keep-fp32 auto`` why."""
     kept = ", ".join(f"{layer['node']}" + (f" ({100 * layer['disagreement']:.1f}%)" if "disagreement" in layer else "")
@@ -103,6 +96,7 @@ def _kept_fp32_line(int8: dict) -> str:
 
 def run_export(args: argparse.Namespace) -> int:
     from occkit.export import ExportError, check_export_output, check_opset, export_model
+    from occkit.quantization import parse_keep_fp32
 
     output_file(args.out, "--out")
     check_export_output(args.out)  # a .onnx name, and its FILE.json replaces nothing but an earlier report
@@ -116,7 +110,7 @@ def run_export(args: argparse.Namespace) -> int:
         report = export_model(args.model, args.out, checkpoint=args.ckpt, data=args.data, opset=args.opset,
                               check=not args.no_check, repeats=args.repeats, sample=args.sample,
                               precision=args.precision, calibration_frames=args.calibration_frames,
-                              keep_fp32=_keep_fp32(args.keep_fp32))  # fmt: skip
+                              keep_fp32=parse_keep_fp32(args.keep_fp32))  # fmt: skip
     except ExportError as error:
         print(f"occkit export: error: {error}", file=sys.stderr)
         return 1
