@@ -11,8 +11,9 @@ streamed scene by scene, as ``occkit eval`` runs them). Groups of arms may run w
 different machines (``--arms`` picks a group; each run records its steps and device), but the two arms of a claim
 are compared only when their budgets are equal.
 
-Each paper claim is a comparison of two arms (:data:`CLAIMS`), on the seeds both arms have (matched: the same seed
-set for both), every arm ``--seeds`` of them. Its verdict (:func:`verdict`) is a Welch test of the arms' mIoU over
+Each paper claim is a comparison of two arms (:data:`CLAIMS`), on the seeds both arms ran on one device and one
+copy of the world (matched: the same seed set for both; each run records its device and its world's content hash),
+every arm ``--seeds`` of them. Its verdict (:func:`verdict`) is a Welch test of the arms' mIoU over
 those seeds: the mean difference with its 95% confidence interval and the two-sided p-value; "holds" or "reversed"
 where p < 0.05 in that direction, else "no effect detected", with the smallest difference these seeds would have
 detected (at 80% power).
@@ -29,6 +30,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import functools
 import json
 import multiprocessing
 import os
@@ -50,6 +52,7 @@ from occkit.experiment import Experiment, replace_train
 from occkit.figure import new_figure, save_figure
 from occkit.models.daocc import with_bev_extent
 from occkit.models.temporal import TemporalConfig
+from occkit.outputs import folder_digest
 from occkit.sim.generate import SimConfig, simulate_dataset
 
 #: 16 scenes of 24 key frames at 400 x 225: the sim holds the last 4 out (val), 12 train (288 frames).
@@ -187,6 +190,12 @@ def _device_name() -> str:
     return f"CPU ({os.cpu_count()} cores)"
 
 
+@functools.cache
+def world_digest(data: Path) -> str:
+    """The content hash of the world at ``data`` (:func:`occkit.outputs.folder_digest`), once per process."""
+    return folder_digest(data)
+
+
 def run_arm(name: str, seed: int, args: argparse.Namespace) -> dict:
     """Train and score one arm at one seed; the cached result when it already ran."""
     result_file = args.out / _slug(name) / f"seed-{seed}.json"
@@ -221,7 +230,8 @@ def run_arm(name: str, seed: int, args: argparse.Namespace) -> dict:
         "train_seconds": train_wall, "train_cpu_seconds": train_cpu, "resumed_from_step": start_step,
         "eval_seconds": time.perf_counter() - wall,
         "eval_cpu_seconds": _cpu_seconds() - cpu, "params": sum(p.numel() for p in model.parameters()),
-        "threads": torch.get_num_threads(), "device": _device_name(), "world": {**WORLD, "data": str(args.data)},
+        "threads": torch.get_num_threads(), "device": _device_name(),
+        "world": {**WORLD, "data": str(args.data), "sha256": world_digest(args.data.resolve())},
     }  # fmt: skip
     result_file.parent.mkdir(parents=True, exist_ok=True)
     result_file.write_text(json.dumps(result, indent=2) + "\n")
@@ -286,26 +296,55 @@ def welch(a: list[float], b: list[float]) -> dict[str, float]:
             "detectable": float((critical + stats.t.ppf(POWER, df)) * error)}  # fmt: skip
 
 
+def _setting(run: dict) -> tuple[str, str | None]:
+    """Where a run trained: its device and its world's content hash (None where the run did not record it)."""
+    return run.get("device", "CPU"), (run.get("world") or {}).get("sha256")
+
+
+def matched_seeds(better: list[dict], worse: list[dict]) -> tuple[tuple[str, str | None] | None, list[int]]:
+    """The seeds both arms ran on one device and one copy of the world, and that (device, world hash): of the
+    settings the arms share, the one with the most such seeds (None and no seeds when they share none)."""
+    by_setting: dict[tuple[str, str | None], list[set[int]]] = {}
+    for side, runs in enumerate((better, worse)):
+        for run in runs:
+            by_setting.setdefault(_setting(run), [set(), set()])[side].add(run["seed"])
+    shared = {setting: sorted(a & b) for setting, (a, b) in by_setting.items() if a & b}
+    if not shared:
+        return None, []
+    setting = max(sorted(shared, key=str), key=lambda s: len(shared[s]))
+    return setting, shared[setting]
+
+
 def verdict(claim: Claim, runs: dict[str, list[dict]]) -> dict:
-    """A claim's verdict from its arms' runs on their matched seeds: the mIoU difference (better - worse, points),
-    its 95% interval, the p-value, and "holds" / "reversed" (p < :data:`ALPHA` in that direction) or "no effect
-    detected" with the smallest difference the seeds would have detected."""
+    """A claim's verdict from its arms' runs on their matched seeds (:func:`matched_seeds`: the same seeds, one
+    device, one copy of the world): the mIoU difference (better - worse, points), its 95% interval, the p-value,
+    and "holds" / "reversed" (p < :data:`ALPHA` in that direction) or "no effect detected" with the smallest
+    difference the seeds would have detected."""
     better, worse = runs.get(claim.better) or [], runs.get(claim.worse) or []
     if not better or not worse:
         return {"status": "not run"}
     budgets = sorted({r["steps"] for r in better}), sorted({r["steps"] for r in worse})
     if budgets[0] != budgets[1]:
         return {"status": f"budgets differ ({budgets[0]} against {budgets[1]} steps)"}
-    seeds = sorted({r["seed"] for r in better} & {r["seed"] for r in worse})
+    setting, seeds = matched_seeds(better, worse)
+    where = {} if setting is None else {"device": setting[0], "world": setting[1]}
     if len(seeds) < 2:
-        return {"status": f"too few matched seeds ({len(seeds)})", "seeds": seeds}
-    by_seed = [{r["seed"]: r for r in arm} for arm in (better, worse)]
+        return {"status": f"too few matched seeds ({len(seeds)})", "seeds": seeds, **where}
+    by_seed = [{r["seed"]: r for r in arm if _setting(r) == setting} for arm in (better, worse)]
     test = welch([100 * by_seed[0][s]["miou"] for s in seeds], [100 * by_seed[1][s]["miou"] for s in seeds])
     iou = statistics.mean(100 * (by_seed[0][s]["iou"] - by_seed[1][s]["iou"]) for s in seeds)
     direction = "holds" if test["difference"] > 0 else "reversed"
     status = direction if test["p"] < ALPHA else "no effect detected"
-    return {"status": status, "seeds": seeds, "difference": test["difference"], "ci95": test["ci95"], "p": test["p"],
-            "df": test["df"], "detectable": test["detectable"], "iou_difference": iou}  # fmt: skip
+    return {"status": status, "seeds": seeds, **where, "difference": test["difference"], "ci95": test["ci95"],
+            "p": test["p"], "df": test["df"], "detectable": test["detectable"], "iou_difference": iou}  # fmt: skip
+
+
+def _where(verdict: dict) -> str:
+    """A claim's device and world copy as the report shows them: ``CPU (2 cores), world 1a2b3c4d``."""
+    if "device" not in verdict:
+        return "-"
+    world = verdict["world"]
+    return f"{verdict['device']}, " + (f"world {world.removeprefix('sha256:')[:8]}" if world else "world not recorded")
 
 
 def _cell(summary: dict, key: str) -> str:
@@ -340,23 +379,26 @@ def write_report(out: Path, args: argparse.Namespace) -> dict:
                      f"{len(summary['seeds'])} | {_cell(summary, 'miou')} | {_cell(summary, 'iou')} | "
                      f"{_cell(summary, 'rayiou')} | {summary['train_minutes']:.1f} | "
                      f"{summary['train_cpu_minutes']:.1f} |")
-    lines += ["", "Each claim compares its two arms on the seeds both have. The difference is the better arm's mean "
+    lines += ["", "Each claim compares its two arms on the seeds both ran on one device and one copy of the world "
+              "(its content hash; older runs did not record it). The difference is the better arm's mean "
               "mIoU minus the worse arm's, with the range that holds the true difference 95 times in 100 (Welch's "
               "t-test, which allows the arms different spreads); a claim holds, or is reversed, only where a "
               "difference that large would arise by chance less than 5 times in 100 (p < 0.05). Otherwise no effect "
               "was detected, and the last column says how large a difference these seeds would have caught (4 "
               "times in 5).", "",
-              "| paper | claim | better | worse | seeds | mIoU difference (95% interval) | p | IoU difference | "
-              "verdict | detectable |", "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]  # fmt: skip
+              "| paper | claim | better | worse | seeds | run on | mIoU difference (95% interval) | p | "
+              "IoU difference | verdict | detectable |",
+              "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]  # fmt: skip
     for v in verdicts:
+        where = _where(v)
         if "difference" not in v:
             lines.append(f"| {v['paper']} | {v['text']} | `{v['better']}` | `{v['worse']}` | "
-                         f"{len(v.get('seeds', []))} | - | - | - | {v['status']} | - |")  # fmt: skip
+                         f"{len(v.get('seeds', []))} | {where} | - | - | - | {v['status']} | - |")  # fmt: skip
             continue
         low, high = v["ci95"]
         detectable = f"{v['detectable']:.2f}" if v["status"] == "no effect detected" else "-"
         lines.append(f"| {v['paper']} | {v['text']} | `{v['better']}` | `{v['worse']}` | {len(v['seeds'])} | "
-                     f"{v['difference']:+.2f} ({low:+.2f} to {high:+.2f}) | {v['p']:.3f} | "
+                     f"{where} | {v['difference']:+.2f} ({low:+.2f} to {high:+.2f}) | {v['p']:.3f} | "
                      f"{v['iou_difference']:+.2f} | {v['status']} | {detectable} |")  # fmt: skip
     lines.append("")
     for device, spent in hours.items():

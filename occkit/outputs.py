@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import hashlib
 import json
 import os
 import shutil
@@ -47,6 +48,7 @@ __all__ = [
     "lock_path",
     "staging_folder",
     "manifest_files",
+    "folder_digest",
     "check_replaceable",
     "check_output_folder",
     "write_manifest",
@@ -357,6 +359,34 @@ def manifest_files(folder: Path) -> tuple[str, frozenset[str]] | None:
         raise FileExistsError(f"--overwrite refused: {path} is not a readable occkit manifest (format "
                               f"{MANIFEST_FORMAT}); nothing was deleted") from None  # fmt: skip
     return command, frozenset(files)
+
+
+def folder_digest(folder: Path) -> str:
+    """One SHA-256 over the content of ``folder``: each file's relative path and bytes, in sorted order.
+
+    The files are those its manifest lists when it has one (what occkit wrote: a world written by ``occkit sim``),
+    otherwise every file but occkit's index cache (:data:`CACHE_FOLDER`), which readers add and rebuild. Two copies
+    of a dataset with the same digest hold the same bytes, wherever they lie.
+
+    Raises:
+        FileNotFoundError: a file the manifest lists is missing (named).
+    """
+    folder = Path(folder)
+    listed = manifest_files(folder)
+    if listed is not None:
+        names = sorted(listed[1])
+    else:
+        names = sorted(n for n in _files_under(folder) if n != MANIFEST and not n.startswith(f"{CACHE_FOLDER}/"))
+    digest = hashlib.sha256()
+    for name in names:
+        path = folder / name
+        if not path.is_file():
+            raise FileNotFoundError(f"{path} is listed in {folder / MANIFEST} but missing")
+        digest.update(f"{name}\0{path.stat().st_size}\0".encode())
+        with open(path, "rb") as stream:
+            for block in iter(lambda s=stream: s.read(1 << 20), b""):
+                digest.update(block)
+    return f"sha256:{digest.hexdigest()}"
 
 
 def _show(names: Iterable[str], limit: int = 5) -> str:

@@ -103,3 +103,38 @@ def test_run_all_runs_what_is_missing_and_rewrites_the_summary(study, tmp_path, 
     assert ran == [(BETTER, 0), (BETTER, 1), (WORSE, 1)]
     summary = json.loads((tmp_path / "study.json").read_text())
     assert json.dumps(summary).count("holds") >= 1
+
+
+def test_a_claim_compares_runs_of_one_device_and_one_world_copy(study):
+    claim = next(c for c in study.CLAIMS if (c.better, c.worse) == (BETTER, WORSE))
+    runs = _runs([0.20, 0.22, 0.21, 0.30], [0.10, 0.12, 0.11, 0.40])
+    for arm in runs.values():
+        for run in arm:
+            run["device"], run["world"] = "GPU", {"sha256": "sha256:aa"}
+    runs[BETTER][3]["device"] = "CPU"  # seed 3 ran elsewhere for one arm: not matched
+    result = study.verdict(claim, runs)
+    assert result["seeds"] == [0, 1, 2] and (result["device"], result["world"]) == ("GPU", "sha256:aa")
+    runs[WORSE][2]["world"] = {"sha256": "sha256:bb"}  # another copy of the world
+    assert study.verdict(claim, runs)["seeds"] == [0, 1]
+    runs[WORSE][1]["world"] = {}  # not recorded: a setting of its own
+    assert study.verdict(claim, runs)["status"] == "too few matched seeds (1)"
+    assert study._where(study.verdict(claim, _runs([0.2, 0.3], [0.1, 0.2]))) == "CPU, world not recorded"
+
+
+def test_a_worlds_digest_is_its_content_wherever_it_lies(tmp_path):
+    from occkit.outputs import folder_digest, write_manifest
+
+    a, b = tmp_path / "a", tmp_path / "b"
+    for folder in (a, b):
+        (folder / "gts").mkdir(parents=True)
+        (folder / "gts" / "labels.npz").write_bytes(b"\x00\x01")
+        (folder / "splits.json").write_text("{}")
+        write_manifest(folder, "occkit sim")
+    (b / ".occkit").mkdir()
+    (b / ".occkit" / "index.npz").write_bytes(b"a cache")  # readers' cache: not content
+    assert folder_digest(a) == folder_digest(b)
+    (b / "gts" / "labels.npz").write_bytes(b"\x00\x02")
+    assert folder_digest(a) != folder_digest(b)
+    (b / "gts" / "labels.npz").unlink()
+    with pytest.raises(FileNotFoundError, match="labels.npz"):
+        folder_digest(b)
