@@ -4,9 +4,9 @@
     python benchmarks/model_outputs.py compare [--names ...] [--data data/model_outputs] [--out DIR]
 
 For each entry (all of ``zoo.names()`` by default): the weights drawn with seed 0, then on one training sample of a
-synthetic world (2 scenes x 2 key frames at 400 x 225 with Occ3D and SurroundOcc labels, read with the entry's own
-data settings and augmentation, cameras ``CAM_FRONT`` and ``CAM_BACK`` to keep the paper-size entries quick; none
-for a LiDAR-only entry), with seed 0 before each pass:
+synthetic world (2 scenes x 2 key frames at 400 x 225 with Occ3D, SurroundOcc and OpenOcc labels, read with the
+entry's own data settings and augmentation, cameras ``CAM_FRONT`` and ``CAM_BACK`` to keep the paper-size entries
+quick; none for a LiDAR-only entry), with seed 0 before each pass:
 
 * train mode: every tensor of the forward's output and every loss term, and the gradient norm of every parameter;
 * eval mode: the forward's output and ``predict``'s semantics.
@@ -38,7 +38,8 @@ CAMERAS = ("CAM_FRONT", "CAM_BACK")
 
 def _world(root: Path) -> Path:
     if not (root / "annotations.json").is_file():
-        simulate_dataset(SimConfig(scenes=2, frames=2, seed=0, image_size=(400, 225), surroundocc=True), root)
+        simulate_dataset(SimConfig(scenes=2, frames=2, seed=0, image_size=(400, 225), surroundocc=True, openocc=True),
+                         root)
     return root
 
 

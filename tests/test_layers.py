@@ -178,3 +178,28 @@ def test_the_documented_layers_are_the_tested_ones():
     rows = [line.split("|") for line in section.splitlines() if line.startswith("| ") and line[2:3].isdigit()]
     documented = tuple(tuple(re.findall(r"`([\w.]+)`", row[2])) for row in rows)
     assert documented == LAYERS, "docs/architecture.md's layer table differs from LAYERS"
+
+
+#: Libraries no occkit module imports at its top level, and what importing them costs every command that would.
+IMPORTED_WHERE_USED = {
+    "torchvision": "torch._dynamo through torchvision.ops: 1.7 s (occkit.models.resnet is torchvision's ResNet)",
+    "scipy.spatial": "0.3 s, for one rotation of one corruption",
+}
+
+
+def _top_level_imports(path: Path) -> set[str]:
+    """The modules a file imports in its body (not inside a function or class)."""
+    found = set()
+    for node in ast.parse(path.read_text(), filename=str(path)).body:
+        if isinstance(node, ast.Import):
+            found.update(alias.name for alias in node.names)
+        elif isinstance(node, ast.ImportFrom) and not node.level:
+            found.update({node.module or "", *(f"{node.module}.{alias.name}" for alias in node.names)})
+    return found
+
+
+def test_slow_libraries_are_imported_only_where_used():
+    found = [f"{module} imports {name} at its top level ({why})" for module, path in MODULES.items()
+             for name in sorted(_top_level_imports(path)) for library, why in IMPORTED_WHERE_USED.items()
+             if _within(name, library)]  # fmt: skip
+    assert not found, "\n".join(found)

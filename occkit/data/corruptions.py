@@ -27,7 +27,6 @@ from typing import Any
 
 import numpy as np
 import torch
-from scipy.spatial.transform import Rotation
 from torch import Tensor
 
 from occkit.data.transforms import drop_lidar_beams, drop_points
@@ -213,6 +212,8 @@ class SampleCorruption:
         axis, shift = rng.normal(size=3), rng.normal(size=3)
         delta = np.eye(4)
         rotation = np.radians(self.params["degrees"]) * axis / np.linalg.norm(axis)
+        from scipy.spatial.transform import Rotation  # here: scipy.spatial costs every command 0.3 s to import
+
         delta[:3, :3] = Rotation.from_rotvec(rotation).as_matrix()
         delta[:3, 3] = self.params["metres"] * shift / np.linalg.norm(shift)
         return np.asarray(cam2ego, dtype=np.float64) @ delta

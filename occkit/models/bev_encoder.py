@@ -12,9 +12,9 @@ from dataclasses import dataclass
 
 import torch
 from torch import Tensor, nn
-from torchvision.models.resnet import BasicBlock
 
 from occkit.models.image_encoder import conv_bn_relu
+from occkit.models.resnet import BasicBlock
 
 __all__ = ["BevEncoderConfig", "BevBackbone", "FPNLSS", "BevEncoder", "ConvFuser"]
 

@@ -1,4 +1,5 @@
-"""Image encoder: a torchvision ResNet and an FPN-style neck, multi-camera images -> one feature map.
+"""Image encoder: a ResNet (torchvision's, :mod:`occkit.models.resnet`) and an FPN-style neck, multi-camera images
+-> one feature map.
 
 Two necks, as the references use them:
 
@@ -20,8 +21,9 @@ from typing import Literal
 
 import torch
 import torch.nn.functional as F
-import torchvision
 from torch import Tensor, nn
+
+from occkit.models.resnet import DEPTHS, BasicBlock, Bottleneck, ResNet, resnet
 
 __all__ = [
     "ImageEncoderConfig",
@@ -31,9 +33,6 @@ __all__ = [
     "ImageEncoder",
     "conv_bn_relu",
 ]
-
-_RESNETS = {18: "resnet18", 34: "resnet34", 50: "resnet50", 101: "resnet101"}
-
 
 @dataclass(frozen=True)
 class ImageEncoderConfig:
@@ -71,16 +70,16 @@ def conv_bn_relu(in_channels: int, out_channels: int, kernel_size: int, stride: 
     )
 
 
-def _layers(net: torchvision.models.ResNet) -> list[nn.Sequential]:
+def _layers(net: ResNet) -> list[nn.Sequential]:
     return [net.layer1, net.layer2, net.layer3, net.layer4]
 
 
-def _resnet(block: type[nn.Module], blocks: Sequence[int], base_channels: int) -> torchvision.models.ResNet:
+def _resnet(block: type[BasicBlock | Bottleneck], blocks: Sequence[int], base_channels: int) -> ResNet:
     """torchvision's ResNet with ``blocks`` per stage and stage widths ``base_channels * 2^s`` (torchvision fixes 64;
     its ``_make_layer`` builds the stages from ``inplanes`` as mmdet's ResNet does from ``base_channels``)."""
     if base_channels < 1:
         raise ValueError(f"base_channels must be positive, got {base_channels}")
-    net = torchvision.models.ResNet(block, list(blocks))
+    net = ResNet(block, list(blocks))
     if base_channels != 64:
         net.inplanes = base_channels
         net.conv1 = nn.Conv2d(3, base_channels, kernel_size=7, stride=2, padding=3, bias=False)
@@ -92,7 +91,7 @@ def _resnet(block: type[nn.Module], blocks: Sequence[int], base_channels: int) -
 
 
 class ResNetBackbone(nn.Module):
-    """torchvision ResNet without its classifier, returning the requested stages.
+    """ResNet without its classifier, returning the requested stages.
 
     Args:
         cfg: depth, stages, freezing and weights.
@@ -102,11 +101,11 @@ class ResNetBackbone(nn.Module):
 
     def __init__(self, cfg: ImageEncoderConfig) -> None:
         super().__init__()
-        if cfg.depth not in _RESNETS:
-            raise ValueError(f"image encoder depth must be one of {sorted(_RESNETS)}, got {cfg.depth}")
+        if cfg.depth not in DEPTHS:
+            raise ValueError(f"image encoder depth must be one of {sorted(DEPTHS)}, got {cfg.depth}")
         if not cfg.out_stages or any(s not in (1, 2, 3, 4) for s in cfg.out_stages):
             raise ValueError(f"out_stages must be a non-empty subset of 1..4, got {cfg.out_stages}")
-        net = getattr(torchvision.models, _RESNETS[cfg.depth])(weights=None)
+        net = resnet(cfg.depth)
         if cfg.blocks or cfg.base_channels != 64:
             net = _resnet(type(net.layer1[0]), cfg.blocks or [len(layer) for layer in _layers(net)], cfg.base_channels)
         self.stem = nn.Sequential(net.conv1, net.bn1, net.relu, net.maxpool)

@@ -83,9 +83,9 @@ from typing import Literal
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
-from torchvision.models.resnet import BasicBlock
 
 from occkit.geometry.se3 import invert_transform, transform_points
+from occkit.models.resnet import BasicBlock
 
 __all__ = ["history_to_current", "align_bev", "ConcatFusion", "RecurrentFusion", "TemporalConfig", "TemporalFusion",
            "StreamMemory", "HISTORY_INPUTS"]

@@ -19,10 +19,10 @@ from dataclasses import dataclass
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
-from torchvision.models.resnet import BasicBlock
 
 from occkit.models.dac import DACBlock
 from occkit.models.image_encoder import conv_bn_relu
+from occkit.models.resnet import BasicBlock
 
 __all__ = ["DepthNetConfig", "DepthNet", "camera_parameters", "lidar_target", "NUM_CAMERA_PARAMETERS"]
 
