@@ -119,6 +119,19 @@ def _start(args, stderr: Path, env: dict = ENV) -> subprocess.Popen:
         return subprocess.Popen(_command(args), env=env, cwd=REPO, stdout=subprocess.DEVNULL, stderr=handle)
 
 
+def _start_torchrun(args, stderr: Path) -> subprocess.Popen:
+    """``torchrun`` of two processes in the background, stdout to a pipe (read by :func:`_finish_torchrun`)."""
+    with open(stderr, "wb") as handle:
+        return subprocess.Popen(_torchrun(args), env=ENV, cwd=REPO, stdout=subprocess.PIPE, stderr=handle, text=True)
+
+
+def _finish_torchrun(process: subprocess.Popen, stderr: Path) -> str:
+    """The stdout of a finished :func:`_start_torchrun` group, which must have succeeded."""
+    stdout, _ = process.communicate(timeout=TIMEOUT)
+    assert process.returncode == 0, stderr.read_text()[-4000:]
+    return stdout
+
+
 def _finish(process: subprocess.Popen, stderr: Path) -> None:
     process.wait(timeout=TIMEOUT)
     assert process.returncode == 0, stderr.read_text()[-4000:]
@@ -432,23 +445,26 @@ def ddp(data, tmp_path_factory) -> dict:
     driver.write_text(DUMP_RANK_STATE)
     dumps.mkdir()
     seconds = {}
+    # The 1-process runs go in this process while a torchrun group runs beside them: a group spends much of its
+    # time starting and meeting its ranks, which leaves a core free.
     started = time.perf_counter()
     # torchrun --standalone --nproc-per-node 2 -m occkit train ..., through a script that also saves each rank's state
-    two = _run(_torchrun([driver, dumps, *_train_args(data, folder / "two", *DDP_TRAIN)]))
-    seconds["train, 2 processes"] = time.perf_counter() - started
-    started = time.perf_counter()
-    _run(_command(_train_args(data, folder / "one", *DDP_TRAIN, "train.batch_size=2")))
+    group = _start_torchrun([driver, dumps, *_train_args(data, folder / "two", *DDP_TRAIN)], folder / "two.stderr")
+    with torch_threads(1):  # one process: this one, on one thread as each rank
+        assert main([str(arg) for arg in _train_args(data, folder / "one", *DDP_TRAIN, "train.batch_size=2")]) == 0
     seconds["train, 1 process"] = time.perf_counter() - started
+    two = _finish_torchrun(group, folder / "two.stderr")
+    seconds["train, 2 processes"] = time.perf_counter() - started
     evaluate = ["eval", "--ckpt", folder / "two" / "best.pt", "--data", data, "--workers", "0", "--device", "cpu"]
     started = time.perf_counter()
-    with torch_threads(1):  # one process: this one, on one thread as the subprocesses
+    group = _start_torchrun(["-m", "occkit", *evaluate, "--out", folder / "eval-two"], folder / "eval-two.stderr")
+    with torch_threads(1):
         assert main([str(arg) for arg in (*evaluate, "--out", folder / "eval-one", "--save-predictions")]) == 0
     seconds["eval, 1 process"] = time.perf_counter() - started
-    started = time.perf_counter()
-    _run(_torchrun(["-m", "occkit", *evaluate, "--out", folder / "eval-two"]))
+    _finish_torchrun(group, folder / "eval-two.stderr")
     seconds["eval, 2 processes"] = time.perf_counter() - started
     print("durations: " + ", ".join(f"{k} {v:.1f} s" for k, v in seconds.items()))
-    return {"folder": folder, "two": folder / "two", "one": folder / "one", "ranks": dumps, "stdout": two.stdout,
+    return {"folder": folder, "two": folder / "two", "one": folder / "one", "ranks": dumps, "stdout": two,
             "eval_one": folder / "eval-one", "eval_two": folder / "eval-two"}  # fmt: skip
 
 
