@@ -396,9 +396,13 @@ class System:
 def zip_bomb(path: Path, member: str, size: int, header: bytes = b"", mode: str = "w") -> None:
     """Add ``member`` to the zip at ``path``: ``header`` then zeros up to ``size`` bytes, deflated to a few MB."""
     import zipfile
+    import zlib
 
     with (zipfile.ZipFile(path, mode, compression=zipfile.ZIP_DEFLATED) as archive,
           archive.open(member, "w", force_zip64=True) as stream):  # fmt: skip
+        # Run-length matching deflates zeros to the same size as the default strategy, 2.4 x faster; the stream is
+        # still plain deflate, which every reader inflates.
+        stream._compressor = zlib.compressobj(9, zlib.DEFLATED, -15, 9, zlib.Z_RLE)
         stream.write(header)
         chunk = bytes(1 << 24)
         for _ in range(size // len(chunk)):

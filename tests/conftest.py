@@ -1,5 +1,10 @@
 """Shared fixtures: a small, geometrically consistent synthetic Batch for model tests, and the synthetic worlds that
-several test files read, simulated once per session."""
+several test files read, simulated once per session (per worker, when pytest-xdist runs the suite on every core).
+
+Under pytest-xdist each worker computes on one thread (``OMP_NUM_THREADS=1``, set before torch loads, and so for the
+subprocesses the tests start unless they set their own): the workers share the cores, and spconv's CPU path slows
+several-fold when its threads compete for them. Tests that need more threads ask for them (:func:`torch_threads`).
+"""
 
 from __future__ import annotations
 
@@ -7,12 +12,16 @@ import contextlib
 import functools
 import importlib.util
 import math
+import os
 import shutil
 import sys
 from pathlib import Path
 
-import pytest
-import torch
+if os.environ.get("PYTEST_XDIST_WORKER"):
+    os.environ["OMP_NUM_THREADS"] = os.environ["MKL_NUM_THREADS"] = "1"
+
+import pytest  # noqa: E402
+import torch  # noqa: E402
 
 from occkit.geometry.se3 import make_transform, rotation_about_z
 from occkit.label_space import OCC3D_SPACE, LabelSpace

@@ -51,6 +51,8 @@ STEPPED_ELSEWHERE = {
                   "size)",
     "da_occ_16f_recurrent": "the recurrent history: da_occ_tiny_temporal here, test_temporal_models",
     "flashocc_m0_4d": "BEVDet4D's concatenated history on FlashOcc: test_temporal_models",
+    "flashocc_pano": "flashocc_m0 with the panoptic switch (centre head, instances): flashocc_tiny_pano here, "
+                     "test_panoptic",
 }
 
 #: Entries that are neither CPU-sized nor a published row, and why.
