@@ -48,6 +48,7 @@ __all__ = [
     "lock_path",
     "staging_folder",
     "manifest_files",
+    "file_digest",
     "folder_digest",
     "check_replaceable",
     "check_output_folder",
@@ -361,6 +362,15 @@ def manifest_files(folder: Path) -> tuple[str, frozenset[str]] | None:
     return command, frozenset(files)
 
 
+def file_digest(path: Path, digest: Any | None = None) -> Any:
+    """``digest`` (a new SHA-256 by default) updated with the bytes of ``path``, read in blocks of 1 MB."""
+    digest = hashlib.sha256() if digest is None else digest
+    with open(path, "rb") as stream:
+        for block in iter(lambda: stream.read(1 << 20), b""):
+            digest.update(block)
+    return digest
+
+
 def folder_digest(folder: Path) -> str:
     """One SHA-256 over the content of ``folder``: each file's relative path and bytes, in sorted order.
 
@@ -383,9 +393,7 @@ def folder_digest(folder: Path) -> str:
         if not path.is_file():
             raise FileNotFoundError(f"{path} is listed in {folder / MANIFEST} but missing")
         digest.update(f"{name}\0{path.stat().st_size}\0".encode())
-        with open(path, "rb") as stream:
-            for block in iter(lambda s=stream: s.read(1 << 20), b""):
-                digest.update(block)
+        file_digest(path, digest)
     return f"sha256:{digest.hexdigest()}"
 
 

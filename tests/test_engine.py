@@ -113,28 +113,18 @@ def _run(command: list[str], timeout: float = TIMEOUT, env: dict = ENV) -> subpr
     return result
 
 
-def _start(args, stderr: Path, env: dict = ENV) -> subprocess.Popen:
-    """``occkit ARGS`` in the background, its stderr going to the file ``stderr`` (a pipe nobody reads could fill)."""
+def _start(command: list[str], stderr: Path, env: dict = ENV, stdout: int = subprocess.DEVNULL) -> subprocess.Popen:
+    """``command`` in the background, its stderr going to the file ``stderr`` (a pipe nobody reads could fill); its
+    stdout dropped, or with ``subprocess.PIPE`` read by :func:`_finish`."""
     with open(stderr, "wb") as handle:
-        return subprocess.Popen(_command(args), env=env, cwd=REPO, stdout=subprocess.DEVNULL, stderr=handle)
+        return subprocess.Popen(command, env=env, cwd=REPO, stdout=stdout, stderr=handle, text=True)
 
 
-def _start_torchrun(args, stderr: Path) -> subprocess.Popen:
-    """``torchrun`` of two processes in the background, stdout to a pipe (read by :func:`_finish_torchrun`)."""
-    with open(stderr, "wb") as handle:
-        return subprocess.Popen(_torchrun(args), env=ENV, cwd=REPO, stdout=subprocess.PIPE, stderr=handle, text=True)
-
-
-def _finish_torchrun(process: subprocess.Popen, stderr: Path) -> str:
-    """The stdout of a finished :func:`_start_torchrun` group, which must have succeeded."""
+def _finish(process: subprocess.Popen, stderr: Path) -> str | None:
+    """The stdout (None where dropped) of a :func:`_start` process, once it has ended; it must have succeeded."""
     stdout, _ = process.communicate(timeout=TIMEOUT)
     assert process.returncode == 0, stderr.read_text()[-4000:]
     return stdout
-
-
-def _finish(process: subprocess.Popen, stderr: Path) -> None:
-    process.wait(timeout=TIMEOUT)
-    assert process.returncode == 0, stderr.read_text()[-4000:]
 
 
 def _rows(path: Path) -> list[dict]:
@@ -220,14 +210,15 @@ def _kill_and_resume(data: Path, folder: Path, extra: tuple[str, ...], kills_aft
     reference, killed = folder / "uninterrupted", folder / "killed"
     started = time.perf_counter()
     # The uninterrupted run goes alongside the others (see BITWISE_ENV).
-    uninterrupted = _start(_train_args(data, reference, *extra), folder / "uninterrupted.stderr", env=BITWISE_ENV)
+    uninterrupted = _start(_command(_train_args(data, reference, *extra)), folder / "uninterrupted.stderr",
+                           env=BITWISE_ENV)
     snapshots = []
     for number, steps in enumerate(kills_after):
         # Past every row the killed attempts logged, so it is this attempt that reaches the step.
         step = _logged_step(killed) + steps
         stderr = folder / f"attempt-{number}.stderr"
-        process = _start(_train_args(data, killed, *extra) + (["--resume", "auto"] if number else []), stderr,
-                         env=BITWISE_ENV)  # fmt: skip
+        process = _start(_command(_train_args(data, killed, *extra) + (["--resume", "auto"] if number else [])),
+                         stderr, env=BITWISE_ENV)  # fmt: skip
         _kill_mid_training(process, killed, step, rng, stderr)
         snapshots.append(folder / f"after-kill-{number}")
         shutil.copytree(killed, snapshots[-1])
@@ -449,19 +440,20 @@ def ddp(data, tmp_path_factory) -> dict:
     # time starting and meeting its ranks, which leaves a core free.
     started = time.perf_counter()
     # torchrun --standalone --nproc-per-node 2 -m occkit train ..., through a script that also saves each rank's state
-    group = _start_torchrun([driver, dumps, *_train_args(data, folder / "two", *DDP_TRAIN)], folder / "two.stderr")
+    group = _start(_torchrun([driver, dumps, *_train_args(data, folder / "two", *DDP_TRAIN)]), folder / "two.stderr",
+                   stdout=subprocess.PIPE)
     with torch_threads(1):  # one process: this one, on one thread as each rank
         assert main([str(arg) for arg in _train_args(data, folder / "one", *DDP_TRAIN, "train.batch_size=2")]) == 0
     seconds["train, 1 process"] = time.perf_counter() - started
-    two = _finish_torchrun(group, folder / "two.stderr")
+    two = _finish(group, folder / "two.stderr")
     seconds["train, 2 processes"] = time.perf_counter() - started
     evaluate = ["eval", "--ckpt", folder / "two" / "best.pt", "--data", data, "--workers", "0", "--device", "cpu"]
     started = time.perf_counter()
-    group = _start_torchrun(["-m", "occkit", *evaluate, "--out", folder / "eval-two"], folder / "eval-two.stderr")
+    group = _start(_torchrun(["-m", "occkit", *evaluate, "--out", folder / "eval-two"]), folder / "eval-two.stderr")
     with torch_threads(1):
         assert main([str(arg) for arg in (*evaluate, "--out", folder / "eval-one", "--save-predictions")]) == 0
     seconds["eval, 1 process"] = time.perf_counter() - started
-    _finish_torchrun(group, folder / "eval-two.stderr")
+    _finish(group, folder / "eval-two.stderr")
     seconds["eval, 2 processes"] = time.perf_counter() - started
     print("durations: " + ", ".join(f"{k} {v:.1f} s" for k, v in seconds.items()))
     return {"folder": folder, "two": folder / "two", "one": folder / "one", "ranks": dumps, "stdout": two,

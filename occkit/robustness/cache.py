@@ -36,7 +36,7 @@ from occkit.data.corruptions import CORRUPTIONS
 from occkit.data.dataset import OccupancyDataset
 from occkit.data.index import tables_key
 from occkit.errors import InputError
-from occkit.outputs import write_atomic
+from occkit.outputs import file_digest, write_atomic
 from occkit.robustness.suite import Case
 
 if TYPE_CHECKING:  # the engine is imported by the run, not by the cache
@@ -52,15 +52,6 @@ CASES_FOLDER = "cases"
 _RUN_SETTINGS = ("corruption", "corruption_severity", "seed")
 
 
-def _hash_file(path: Path, digest: Any | None = None) -> Any:
-    """``digest`` (a new SHA-256 by default) updated with the bytes of ``path``."""
-    digest = hashlib.sha256() if digest is None else digest
-    with open(path, "rb") as stream:
-        for block in iter(lambda: stream.read(1 << 20), b""):
-            digest.update(block)
-    return digest
-
-
 def labels_digest(dataset: OccupancyDataset) -> str:
     """One SHA-256 over the label file of every key frame of ``dataset``, in order: each file's path and content
     (a missing file counts as missing: scoring it fails, or skips the frame, as the dataset says)."""
@@ -69,10 +60,10 @@ def labels_digest(dataset: OccupancyDataset) -> str:
         path = dataset.label_path(record)
         digest.update(f"{record.token}\0{path}\0".encode())
         try:
-            file_digest = _hash_file(path).hexdigest()
+            content = file_digest(path).hexdigest()
         except FileNotFoundError:
-            file_digest = "missing"
-        digest.update(f"{file_digest}\n".encode())
+            content = "missing"
+        digest.update(f"{content}\n".encode())
     return f"sha256:{digest.hexdigest()}"
 
 
@@ -96,12 +87,12 @@ def cache_context(
     settings["root"] = str(root)
     tokens = hashlib.sha256("\n".join(f"{r.scene}/{r.token}" for r in dataset.records).encode()).hexdigest()
     context = {
-        "model_sha256": _hash_file(model_file).hexdigest(),
+        "model_sha256": file_digest(model_file).hexdigest(),
         "model_entry": entry,
         "data": str(root),
         "dataset": settings,
         "tables": tables_key(root, config.version, 0),
-        "index_sha256": None if config.index is None else _hash_file(Path(config.index)).hexdigest(),
+        "index_sha256": None if config.index is None else file_digest(Path(config.index)).hexdigest(),
         "split": config.split,
         "frames": len(dataset),
         "key_frames_sha256": tokens,
