@@ -183,10 +183,10 @@ class OutputLock:
     any work and the library function it calls takes it again.
 
     With ``flock`` (Linux, macOS) the lock dies with its process; forked children (DataLoader workers) close their
-    copy at once, so they never outlive it holding the lock. The lock file is removed on release; since
-    another process may have opened it just before, a locker checks after locking that the path still names the
-    file it locked, and starts again otherwise. Without ``flock`` the lock file is created exclusively and holds the
-    PID; a lock file whose process no longer runs is taken over.
+    copy first thing after the fork (a fork hook), so they never outlive it holding the lock. The lock file is
+    removed on release; since another process may have opened it just before, a locker checks after locking that the
+    path still names the file it locked, and starts again otherwise. Without ``flock`` the lock file is created
+    exclusively and holds the PID; a lock file whose process no longer runs is taken over.
     """
 
     def __init__(self, out: str | Path, command: str, option: str = "--out", enabled: bool = True) -> None:

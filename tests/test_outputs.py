@@ -119,16 +119,16 @@ def test_a_second_writer_is_refused_naming_the_holder_and_a_dead_holder_leaves_n
     assert not lock_path(out).exists()  # released: the lock file goes too
 
 
-#: A run that takes the lock of argv[1] and forks a worker (as a DataLoader does), then waits to be killed.
+#: A run that takes the lock of argv[1] and forks a worker (as a DataLoader does), then waits to be killed. The worker
+#: prints its PID: fork's hooks have run in it by then (the parent's return from fork does not wait for them).
 FORKING_HOLDER = """
 import os, sys, time
 from occkit.outputs import OutputLock
 OutputLock(sys.argv[1], "occkit train").acquire()
-worker = os.fork()
-if worker == 0:
+if os.fork() == 0:
+    print(os.getpid(), flush=True)
     time.sleep(60)
     os._exit(0)
-print(worker, flush=True)
 time.sleep(60)
 """
 
