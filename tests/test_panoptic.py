@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import dataclasses
+import importlib
 from pathlib import Path
 
 import numpy as np
@@ -16,12 +17,16 @@ from occkit.data.collate import collate
 from occkit.data.dataset import DatasetConfig, OccupancyDataset
 from occkit.engine.evaluate import dataset_ray_origins, evaluate_model
 from occkit.geometry.grid import OCC3D_GRID
+from occkit.metrics.rayiou import rayiou
+from occkit.metrics.raypq import raypq
 from occkit.models.heads.center import CenterHead, CenterHeadConfig
 from occkit.models.heads.panoptic import assign_instances
 from occkit.viz.palette import class_colors, instance_colors
 
 CAMERAS = ("CAM_FRONT", "CAM_BACK")
 CAR, TRUCK, ROAD, FREE = (OCC3D.index(name) for name in ("car", "truck", "driveable_surface", "free"))
+rayiou_module = importlib.import_module("occkit.metrics.rayiou")  # the package's `rayiou` is the function
+CAST_KERNEL = rayiou_module._cast_kernel
 
 
 @pytest.fixture(scope="module")
@@ -111,7 +116,7 @@ def test_ego_frame_boxes_are_the_lidar_frame_boxes_moved_by_lidar2ego(world):
         DatasetConfig(box_frame="camera")
 
 
-def test_a_panoptic_flashocc_predicts_instances_and_is_scored_with_raypq(world, tmp_path):
+def test_a_panoptic_flashocc_predicts_instances_and_is_scored_with_raypq(world, tmp_path, monkeypatch):
     experiment = zoo.experiment("flashocc_tiny_pano")
     data = dataclasses.replace(experiment.data, root=str(world), split="all", cameras=CAMERAS, augment=False)
     dataset = OccupancyDataset(data)
@@ -131,10 +136,24 @@ def test_a_panoptic_flashocc_predicts_instances_and_is_scored_with_raypq(world, 
     assert prediction.instances.shape == (1, 200, 200, 16) and prediction.instances.dtype == torch.int32
     things = torch.isin(prediction.semantics, torch.tensor([OCC3D.index(n) for n in ("car", "truck", "bus")]))
     assert (prediction.instances[~things & (prediction.semantics == ROAD)] == 0).all()
-    result = evaluate_model(model, dataset, ray_origins=dataset_ray_origins(dataset), predictions=tmp_path)
-    assert {"raypq", "raypq@1", "raypq@2", "raypq@4", "rayiou"} <= set(result)
-    with np.load(next(tmp_path.glob("*.npz"))) as archive:
-        assert archive["instances"].shape == (200, 200, 16)
+    casts = []
+    monkeypatch.setattr(rayiou_module, "_cast_kernel", lambda *a: casts.append(1) or CAST_KERNEL(*a))
+    origins = dataset_ray_origins(dataset)
+    result = evaluate_model(model, dataset, ray_origins=origins, predictions=tmp_path)
+    assert len(casts) == 2 * len(dataset)  # each grid cast once, for RayIoU and RayPQ alike
+    monkeypatch.undo()
+    # The same scores as the metrics' own functions on the written predictions.
+    labels = [dataset[i] for i in range(len(dataset))]
+    written = [np.load(tmp_path / f"{sample.token}.npz") for sample in labels]
+    assert written[0]["instances"].shape == (200, 200, 16)
+    gts = [sample.voxel_semantics.numpy() for sample in labels]
+    preds = [archive["semantics"] for archive in written]
+    rays = [origins[sample.token] for sample in labels]
+    expected = raypq(gts, preds, [sample.voxel_instances.numpy() for sample in labels],
+                     [archive["instances"] for archive in written], rays)  # fmt: skip
+    assert {key: result[key] for key in ("raypq", "raypq@1", "raypq@2", "raypq@4")} == pytest.approx(
+        {key: expected[key] for key in ("raypq", "raypq@1", "raypq@2", "raypq@4")}, nan_ok=True)
+    assert result["rayiou"] == pytest.approx(rayiou(gts, preds, rays)["rayiou"])
 
 
 def test_daocc_becomes_panoptic_from_its_detection_head(world):

@@ -4,6 +4,7 @@ voxel-to-ray path on grids whose answer is known."""
 
 from __future__ import annotations
 
+import importlib
 import json
 from pathlib import Path
 
@@ -11,7 +12,10 @@ import numpy as np
 import pytest
 from conftest import benchmark_module
 
+from occkit.metrics.rayiou import RayCounts, cast_frame, rayiou
 from occkit.metrics.raypq import RayPQCounts, raypq
+
+rayiou_module = importlib.import_module("occkit.metrics.rayiou")  # the package's `rayiou` is the function
 
 GOLDEN = Path(__file__).parent / "golden" / "reference_parity" / "raypq.json"
 
@@ -53,7 +57,33 @@ def test_a_perfect_prediction_scores_one_and_merged_cars_lose_one_of_them():
     assert car < 1.0 and merged["per_class"][1][11] == pytest.approx(1.0)
 
 
-def test_eval_preds_reports_raypq_for_predictions_that_carry_instances(tmp_path):
+def test_one_cast_serves_rayiou_and_raypq_and_counts_add_up_over_frames():
+    labels, instances = _scene()
+    shifted = np.roll(labels, 3, axis=0)
+    frames = [(labels, labels, np.array([[0.0, 0.0, 1.5]])), (labels, shifted, np.array([[2.0, -1.0, 1.5], [0, 0, 1]]))]
+    by_frame, whole = RayPQCounts(), RayCounts()
+    for gt, pred, origins in frames:
+        rays = cast_frame(gt, pred, origins)
+        by_frame.add_cast(rays, instances, instances)
+        counts = RayCounts()
+        counts.add_frame(rays)
+        whole.merge(counts)
+    assert whole.frames == 2 and whole.flow_frames == 0
+    expected = rayiou([f[0] for f in frames], [f[1] for f in frames], [f[2] for f in frames])
+    assert json.dumps(whole.compute()) == json.dumps(expected)  # NaN classes alike
+    reference = RayPQCounts()
+    for gt, pred, origins in frames:
+        reference.add_frame(gt, pred, instances, instances, origins)
+    for name in ("tp", "iou", "fp", "fn"):
+        np.testing.assert_array_equal(getattr(by_frame, name), getattr(reference, name))
+    doubled = RayCounts()
+    doubled.merge(whole)
+    doubled.reduce(lambda counts: counts * 2)  # two ranks that counted alike
+    assert doubled.tp.dtype == np.int64 and (doubled.tp == 2 * whole.tp).all() and doubled.frames == 4
+    assert doubled.scores() == pytest.approx(whole.scores())
+
+
+def test_eval_preds_reports_raypq_for_predictions_that_carry_instances(tmp_path, monkeypatch):
     from occkit.label_files import write_occ3d_labels
     from occkit.metrics.evaluate import evaluate_predictions, markdown_table, write_prediction
 
@@ -67,7 +97,10 @@ def test_eval_preds_reports_raypq_for_predictions_that_carry_instances(tmp_path)
         write_prediction(perfect, token, labels, instances=instances * (index + 3))
         write_prediction(semantic_only, token, labels)
         origins[token] = np.array([[0.0, 0.0, 1.5]])
+    kernel, casts = rayiou_module._cast_kernel, []
+    monkeypatch.setattr(rayiou_module, "_cast_kernel", lambda *a: casts.append(1) or kernel(*a))
     result = evaluate_predictions(gts, perfect, ray_origins=origins, compute_rayiou=True, workers=1)
+    assert len(casts) == 2 * 2  # each grid of the two frames cast once, for RayIoU and RayPQ alike
     assert result["raypq"] == pytest.approx(1.0) and result["raypq@1"] == pytest.approx(1.0)
     assert "RayPQ@2" in markdown_table(result)
     plain = evaluate_predictions(gts, semantic_only, ray_origins=origins, compute_rayiou=True, workers=1)

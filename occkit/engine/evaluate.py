@@ -25,11 +25,10 @@ from occkit.data.loader import sample_loader
 from occkit.engine import distributed
 from occkit.engine.checkpoint import check_compatible, load_checkpoint
 from occkit.experiment import Experiment
-from occkit.label_space import LabelSpace
 from occkit.metrics.confusion import OccupancyMetric
 from occkit.metrics.evaluate import write_prediction
 from occkit.metrics.origins import records_ray_origins
-from occkit.metrics.rayiou import RAYIOU_THRESHOLDS, rayiou, rayiou_from_counts
+from occkit.metrics.rayiou import RayCounts, cast_frame
 from occkit.metrics.raypq import RayPQCounts
 from occkit.models.temporal import StreamMemory
 from occkit.zoo import experiment_from_dict
@@ -152,11 +151,9 @@ def evaluate_model(
     model.eval()
     device = next(model.parameters()).device
     metric = OccupancyMetric.for_space(space, mask)
-    # Zeros to start from: a rank may hold no frame at all.
-    ray_counts = _frame_counts(rayiou([], [], [], space=space)["counts"]) if ray_origins is not None else None
-    velocity_errors = np.zeros((2, space.num_classes))  # summed AVE and true-positive rays per class (flow models)
+    ray_counts = RayCounts(space) if ray_origins is not None else None
     panoptic = RayPQCounts()  # a model with an instance head, on labels with instance ids
-    flow_frames = panoptic_frames = frames = 0
+    panoptic_frames = frames = 0
     memory, batch_size = stream_memory(model, batch_size)
     loader = split_loader(dataset, batch_size, workers, context, by_scene=memory is not None)
     share = len(loader.sampler)
@@ -182,16 +179,10 @@ def evaluate_model(
                     write_prediction(predictions, token, semantics[i], flow,
                                      None if instances is None else instances[i])  # fmt: skip
                 if ray_origins is not None:
-                    flows_of = {} if flow is None else {"gt_flows": [batch.voxel_flow[i].numpy()], "pred_flows": [flow]}
-                    counts = rayiou([labels[i]], [semantics[i]], [ray_origins[token]], **flows_of,
-                                    space=space)["counts"]  # fmt: skip
-                    ray_counts += _frame_counts(counts)
-                    if flow is not None:
-                        velocity_errors += [counts["ave_sum"], counts["ave_count"]]
-                        flow_frames += 1
+                    rays = cast_frame(labels[i], semantics[i], ray_origins[token], space)
+                    ray_counts.add_frame(rays, *(() if flow is None else (batch.voxel_flow[i].numpy(), flow)))
                     if scored_instances:
-                        panoptic.add_frame(labels[i], semantics[i], batch.voxel_instances[i].numpy(), instances[i],
-                                           ray_origins[token])  # fmt: skip
+                        panoptic.add_cast(rays, batch.voxel_instances[i].numpy(), instances[i])
                         panoptic_frames += 1
             frames += len(batch)
         if progress is not None:
@@ -204,32 +195,13 @@ def evaluate_model(
                     frames + skipped)  # fmt: skip
     result = {**metric.compute(), "label_space": space.name, "mask": mask, "frames": frames, "skipped": skipped}
     if ray_origins is not None:
-        velocity_errors = distributed.all_reduce_sum(velocity_errors)
-        flow_frames = int(distributed.all_reduce_sum(np.array([flow_frames]))[0])
-        result.update(_rayiou_summary(distributed.all_reduce_sum(ray_counts), space,
-                                      velocity_errors if flow_frames else None))  # fmt: skip
+        ray_counts.reduce(distributed.all_reduce_sum)  # a rank may hold no frame at all: its counts are zeros
+        result.update(ray_counts.scores())
         if int(distributed.all_reduce_sum(np.array([panoptic_frames]))[0]):
-            for name in ("tp", "iou", "fp", "fn"):
-                setattr(panoptic, name, distributed.all_reduce_sum(getattr(panoptic, name)))
+            panoptic.reduce(distributed.all_reduce_sum)
             scores = panoptic.compute()
             result.update({key: scores[key] for key in ("raypq", "raypq@1", "raypq@2", "raypq@4")})
     return result
-
-
-def _frame_counts(counts: dict) -> np.ndarray:
-    parts = [counts["gt"], counts["pred"]] + [counts["tp"][t] for t in RAYIOU_THRESHOLDS]
-    return np.concatenate(parts).astype(np.int64)
-
-
-def _rayiou_summary(counts: np.ndarray, space: LabelSpace, velocity_errors: np.ndarray | None = None
-                    ) -> dict[str, float]:  # fmt: skip
-    """RayIoU from the summed ray counts and, with the summed ``(2, K)`` velocity errors and true-positive rays of a
-    flow model, mAVE and OccScore."""
-    parts = np.split(counts, 2 + len(RAYIOU_THRESHOLDS))
-    flow = () if velocity_errors is None else (velocity_errors[0], velocity_errors[1].round().astype(np.int64))
-    summary = rayiou_from_counts(parts[0], parts[1], np.stack(parts[2:]), *flow, space=space)
-    keys = ("rayiou", "rayiou@1", "rayiou@2", "rayiou@4") + (("mave", "occ_score") if flow else ())
-    return {key: float(summary[key]) for key in keys}
 
 
 def load_trained(

@@ -30,7 +30,7 @@ from occkit.data.labels import check_flow, label_file, read_labels
 from occkit.data.names import path_under, safe_name
 from occkit.label_space import OCC3D_SPACE, LabelSpace, label_space
 from occkit.metrics.confusion import OccupancyMetric
-from occkit.metrics.rayiou import AVE_THRESHOLD, FLOW_CLASSES, RAYIOU_THRESHOLDS, rayiou, rayiou_from_counts
+from occkit.metrics.rayiou import AVE_THRESHOLD, FLOW_CLASSES, RAYIOU_THRESHOLDS, RayCounts, cast_frame
 from occkit.metrics.raypq import RayPQCounts
 
 __all__ = [
@@ -254,9 +254,10 @@ def read_ray_origins(path: str | Path, tokens: list[str]) -> dict[str, np.ndarra
 def _score_frame(
     space: LabelSpace, token: str, gt_path: Path, pred_path: Path | None, mask: str | None,
     origins: np.ndarray | None,
-) -> tuple[np.ndarray, dict | None, tuple[str, ...]]:
-    """Confusion matrix of one frame, its RayIoU counts when ``origins`` is given (with the velocity errors when the
-    prediction carries flow), and the grid keys its prediction file holds (for the note on files with two)."""
+) -> tuple[np.ndarray, RayCounts | None, RayPQCounts | None, tuple[str, ...]]:
+    """Confusion matrix of one frame; when ``origins`` is given its RayIoU counts (with the velocity errors when the
+    prediction carries flow) and, when it carries instances, its RayPQ counts on the same rays; and the grid keys its
+    prediction file holds (for the note on files with two)."""
     # A frame without a prediction (allowed by the caller) is scored as if everything were predicted free.
     if pred_path is None:
         prediction = _Prediction(np.full(space.grid.shape, space.free_index, np.uint8), None, ())
@@ -268,17 +269,18 @@ def _score_frame(
     metric = OccupancyMetric.for_space(space, mask)
     metric.update(labels.semantics, pred, labels.mask_camera, labels.mask_lidar)
     if origins is None:
-        return metric.confusion, None, prediction.keys
-    flows = {"gt_flows": [labels.flow], "pred_flows": [pred_flow]} if scored_flow else {}
+        return metric.confusion, None, None, prediction.keys
     try:
-        counts = rayiou([labels.semantics], [pred], [origins], **flows, space=space)["counts"]
+        rays = cast_frame(labels.semantics, pred, origins, space)
+        counts = RayCounts(space)
+        counts.add_frame(rays, *((labels.flow, pred_flow) if scored_flow else ()))
     except ValueError as error:
         raise ValueError(f"sample {token}: RayIoU failed ({error})") from error
+    panoptic = None
     if prediction.instances is not None:  # panoptic: RayPQ on the same rays
         panoptic = RayPQCounts()
-        panoptic.add_frame(labels.semantics, pred, labels.instances, prediction.instances, origins)
-        counts["raypq"] = panoptic
-    return metric.confusion, counts, prediction.keys
+        panoptic.add_cast(rays, labels.instances, prediction.instances)
+    return metric.confusion, counts, panoptic, prediction.keys
 
 
 def _pair_predictions(gt_paths: Mapping[str, Path], pred_dir: Path, allow_missing: bool,
@@ -367,9 +369,8 @@ def evaluate_predictions(
             raise ValueError(f"no ray origins for {len(missing)} of {len(tokens)} frames: {_token_list(missing)}")
 
     total = OccupancyMetric.for_space(space, mode)
-    ray_gt = ray_pred = ray_tp = ave_sum = ave_count = 0
-    flow_frames = panoptic_frames = 0
-    panoptic = RayPQCounts()
+    rays = RayCounts(space) if compute_rayiou else None
+    panoptic, panoptic_frames = RayPQCounts(), 0
     both_keys: list[str] = []  # tokens whose file holds semantics and pred
     with ThreadPoolExecutor(max_workers=workers) as pool:
         futures = {
@@ -379,21 +380,15 @@ def evaluate_predictions(
         }  # fmt: skip
         try:
             for future in as_completed(futures):
-                confusion, counts, keys = future.result()
+                confusion, counts, frame_panoptic, keys = future.result()
                 total.confusion += confusion
                 if len(keys) > 1:
                     both_keys.append(futures[future])
                 if counts is not None:
-                    ray_gt = ray_gt + np.asarray(counts["gt"], np.int64)
-                    ray_pred = ray_pred + np.asarray(counts["pred"], np.int64)
-                    ray_tp = ray_tp + np.array([counts["tp"][t] for t in RAYIOU_THRESHOLDS], np.int64)
-                    if "raypq" in counts:
-                        panoptic.merge(counts["raypq"])
-                        panoptic_frames += 1
-                    if "ave_sum" in counts:
-                        ave_sum = ave_sum + np.asarray(counts["ave_sum"], np.float64)
-                        ave_count = ave_count + np.asarray(counts["ave_count"], np.int64)
-                        flow_frames += 1
+                    rays.merge(counts)
+                if frame_panoptic is not None:
+                    panoptic.merge(frame_panoptic)
+                    panoptic_frames += 1
                 if progress is not None:
                     progress(1)
         except BaseException:
@@ -418,24 +413,22 @@ def evaluate_predictions(
     }
     if compute_rayiou:
         predicted = result["frames"] - result["missing_predictions"]
-        if 0 < flow_frames < predicted:
-            raise ValueError(f"{pred_dir}: {flow_frames} of {predicted} predictions carry flow: mAVE needs it in all "
-                             "of them (or in none, for RayIoU alone)")  # fmt: skip
+        if 0 < rays.flow_frames < predicted:
+            raise ValueError(f"{pred_dir}: {rays.flow_frames} of {predicted} predictions carry flow: mAVE needs it in "
+                             "all of them (or in none, for RayIoU alone)")  # fmt: skip
         if 0 < panoptic_frames < predicted:
             raise ValueError(f"{pred_dir}: {panoptic_frames} of {predicted} predictions carry instances: RayPQ needs "
                              "them in all (or in none)")  # fmt: skip
         if panoptic_frames:
             pq = panoptic.compute()
             result.update({key: _finite_or_none(pq[key]) for key in ("raypq", "raypq@1", "raypq@2", "raypq@4")})
-        flow = (ave_sum, ave_count) if flow_frames else ()
-        summary = rayiou_from_counts(ray_gt, ray_pred, ray_tp, *flow, space=space)
-        keys = ("rayiou", "rayiou@1", "rayiou@2", "rayiou@4") + (("mave", "occ_score") if flow else ())
-        result.update({key: _finite_or_none(summary[key]) for key in keys})
-        if flow:
+        result.update({key: _finite_or_none(value) for key, value in rays.scores().items()})
+        if rays.flow_frames:
             ids = [space.taxonomy.index(name) for name in FLOW_CLASSES]
-            result["ave_per_class"] = {name: _finite_or_none(summary["ave_per_class"][c])
+            ave = rays.compute()["ave_per_class"]
+            result["ave_per_class"] = {name: _finite_or_none(ave[c])
                                        for name, c in zip(FLOW_CLASSES, ids, strict=True)}  # fmt: skip
-            result["ave_rays"] = {name: int(ave_count[c]) for name, c in zip(FLOW_CLASSES, ids, strict=True)}
+            result["ave_rays"] = {name: int(rays.ave_count[c]) for name, c in zip(FLOW_CLASSES, ids, strict=True)}
     return result
 
 

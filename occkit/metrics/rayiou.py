@@ -23,15 +23,16 @@ from __future__ import annotations
 
 import functools
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 
 import numpy as np
 from numba import njit, prange
 
 from occkit.label_space import OCC3D_SPACE, LabelSpace
 
-__all__ = ["RAYIOU_THRESHOLDS", "FLOW_CLASSES", "AVE_THRESHOLD", "ray_directions", "cast_rays_exact", "rayiou",
-           "rayiou_from_counts", "occ_score"]
+__all__ = ["RAYIOU_THRESHOLDS", "FLOW_CLASSES", "AVE_THRESHOLD", "ray_directions", "cast_rays_exact", "FrameRays",
+           "cast_frame", "RayCounts", "rayiou", "rayiou_from_counts", "occ_score"]
 
 #: Depth thresholds in metres of RayIoU@1, @2 and @4.
 RAYIOU_THRESHOLDS: tuple[int, ...] = (1, 2, 4)
@@ -301,41 +302,120 @@ def rayiou(
     with_flow = gt_flows is not None or pred_flows is not None
     if with_flow and (gt_flows is None or pred_flows is None or not len(gt_flows) == len(pred_flows) == len(gts)):
         raise ValueError("gt_flows and pred_flows must both be given, one per frame")
-    free, _, flow_ids = _protocol(space)
-    n_bins = 256
-    gt_cnt = np.zeros(n_bins, dtype=np.int64)
-    pred_cnt = np.zeros(n_bins, dtype=np.int64)
-    tp_cnt = np.zeros((len(RAYIOU_THRESHOLDS), n_bins), dtype=np.int64)
-    ave_sum = np.zeros(free + 1, dtype=np.float64)
-    ave_count = np.zeros(free + 1, dtype=np.int64)
+    counts = RayCounts(space)
     for i, (gt, pred, org) in enumerate(zip(gts, preds, origins, strict=True)):
-        gt = _check_labels(gt, "gt")
-        pred = _check_labels(pred, "pred")
-        gt_label, gt_dist, gt_voxel = cast_rays_exact(gt, org, voxels=True, space=space)
-        pred_label, pred_dist, pred_voxel = cast_rays_exact(pred, org, voxels=True, space=space)
-        valid = gt_label != free
-        gt_label, gt_dist = gt_label[valid], gt_dist[valid]
-        pred_label, pred_dist = pred_label[valid], pred_dist[valid]
-        gt_cnt += np.bincount(gt_label, minlength=n_bins)
-        pred_cnt += np.bincount(pred_label, minlength=n_bins)
-        same = gt_label == pred_label
-        err = np.abs(pred_dist - gt_dist)
-        for j, threshold in enumerate(RAYIOU_THRESHOLDS):
-            tp_cnt[j] += np.bincount(gt_label[same & (err < threshold)], minlength=n_bins)
-        if with_flow:
-            gt_flow = _ray_flow(gt_flows[i], gt_voxel[valid], "gt_flows")
-            pred_flow = _ray_flow(pred_flows[i], pred_voxel[valid], "pred_flows")
-            tp = same & (err < AVE_THRESHOLD)
-            for c in flow_ids:
-                rays = tp & (gt_label == c)
-                if rays.any():
-                    # float32 norms summed in float32 per frame and class, then added in float64, as the reference.
-                    errors = np.linalg.norm(gt_flow[rays] - pred_flow[rays], axis=1)
-                    ave_sum[c] += np.sum(errors)
-                    ave_count[c] += errors.shape[0]
+        flows = (gt_flows[i], pred_flows[i]) if with_flow else ()
+        counts.add_frame(cast_frame(gt, pred, org, space), *flows)
+    return counts.compute(flow=with_flow)
 
-    counts = (gt_cnt[: free + 1], pred_cnt[: free + 1], tp_cnt[:, : free + 1])
-    return rayiou_from_counts(*counts, *((ave_sum, ave_count) if with_flow else (None, None)), space=space)
+
+@dataclass(frozen=True)
+class FrameRays:
+    """One frame's protocol rays cast through its ground truth and its prediction, the ``R`` rays kept that the
+    protocol counts: those whose ground-truth ray stops on something other than free space.
+
+    Attributes:
+        gt_label, pred_label: ``(R,)`` uint8 label of the voxel each ray stops in.
+        gt_voxel, pred_voxel: ``(R, 3)`` int64 index of that voxel (where flow and instance ids are read).
+        depth_error: ``(R,)`` float32 absolute difference of the two stopping depths, metres.
+    """
+
+    gt_label: np.ndarray
+    pred_label: np.ndarray
+    gt_voxel: np.ndarray
+    pred_voxel: np.ndarray
+    depth_error: np.ndarray
+
+
+def cast_frame(gt: np.ndarray, pred: np.ndarray, origins: np.ndarray, space: LabelSpace = OCC3D_SPACE) -> FrameRays:
+    """Cast the protocol's rays from ``origins`` (``(T, 3)`` ego metres) through a frame's ``(200, 200, 16)`` uint8
+    ground truth and prediction, once for every score read on them (RayIoU, mAVE, RayPQ)."""
+    free = _protocol(space)[0]
+    gt_label, gt_dist, gt_voxel = cast_rays_exact(_check_labels(gt, "gt"), origins, voxels=True, space=space)
+    pred_label, pred_dist, pred_voxel = cast_rays_exact(_check_labels(pred, "pred"), origins, voxels=True,
+                                                        space=space)  # fmt: skip
+    valid = gt_label != free
+    return FrameRays(gt_label[valid], pred_label[valid], gt_voxel[valid], pred_voxel[valid],
+                     np.abs(pred_dist[valid] - gt_dist[valid]))  # fmt: skip
+
+
+class RayCounts:
+    """RayIoU's ray counts, and for flow the velocity errors of mAVE, summed over frames (the scores are ratios of
+    sums, so frames can be counted apart, by threads or ranks, and added).
+
+    Attributes:
+        gt, pred: ``(K,)`` int64 counted rays per ground-truth / predicted class (the last = free).
+        tp: ``(3, K)`` int64 true positives per threshold of :data:`RAYIOU_THRESHOLDS`.
+        ave_sum, ave_count: ``(K,)`` float64 summed velocity errors (m/s) and int64 true-positive rays at
+            :data:`AVE_THRESHOLD` per class, over the frames counted with flow.
+        frames, flow_frames: frames counted, and of them those counted with flow.
+    """
+
+    def __init__(self, space: LabelSpace = OCC3D_SPACE) -> None:
+        self.space = space
+        free, _, self._flow_ids = _protocol(space)
+        self.gt = np.zeros(free + 1, dtype=np.int64)
+        self.pred = np.zeros(free + 1, dtype=np.int64)
+        self.tp = np.zeros((len(RAYIOU_THRESHOLDS), free + 1), dtype=np.int64)
+        self.ave_sum = np.zeros(free + 1, dtype=np.float64)
+        self.ave_count = np.zeros(free + 1, dtype=np.int64)
+        self.frames = self.flow_frames = 0
+
+    def add_frame(self, rays: FrameRays, gt_flow: np.ndarray | None = None, pred_flow: np.ndarray | None = None
+                  ) -> None:  # fmt: skip
+        """Count one frame's rays; with its ``(200, 200, 16, 2)`` ground-truth and predicted flows (m/s), both or
+        neither, also its velocity errors."""
+        if (gt_flow is None) != (pred_flow is None):
+            raise ValueError("gt_flow and pred_flow must both be given or both be None")
+        width = self.gt.shape[0]
+        self.gt += np.bincount(rays.gt_label, minlength=256)[:width]
+        self.pred += np.bincount(rays.pred_label, minlength=256)[:width]
+        same = rays.gt_label == rays.pred_label
+        for j, threshold in enumerate(RAYIOU_THRESHOLDS):
+            self.tp[j] += np.bincount(rays.gt_label[same & (rays.depth_error < threshold)], minlength=256)[:width]
+        self.frames += 1
+        if gt_flow is None:
+            return
+        gt_velocity = _ray_flow(gt_flow, rays.gt_voxel, "gt_flows")
+        pred_velocity = _ray_flow(pred_flow, rays.pred_voxel, "pred_flows")
+        tp = same & (rays.depth_error < AVE_THRESHOLD)
+        for c in self._flow_ids:
+            selected = tp & (rays.gt_label == c)
+            if selected.any():
+                # float32 norms summed in float32 per frame and class, then added in float64, as the reference.
+                errors = np.linalg.norm(gt_velocity[selected] - pred_velocity[selected], axis=1)
+                self.ave_sum[c] += np.sum(errors)
+                self.ave_count[c] += errors.shape[0]
+        self.flow_frames += 1
+
+    def merge(self, other: RayCounts) -> None:
+        """Add the counts of other frames (same label space)."""
+        if other.space is not self.space:
+            raise ValueError(f"cannot merge {other.space.name} ray counts into {self.space.name} ones")
+        for name in ("gt", "pred", "tp", "ave_sum", "ave_count"):
+            setattr(self, name, getattr(self, name) + getattr(other, name))
+        self.frames += other.frames
+        self.flow_frames += other.flow_frames
+
+    def reduce(self, reduce: Callable[[np.ndarray], np.ndarray]) -> None:
+        """Replace every count by ``reduce(count)``: a sum over distributed ranks, which every rank calls alike."""
+        for name in ("gt", "pred", "tp", "ave_sum", "ave_count"):
+            setattr(self, name, np.asarray(reduce(getattr(self, name))).astype(getattr(self, name).dtype))
+        self.frames, self.flow_frames = (int(n) for n in reduce(np.array([self.frames, self.flow_frames])))
+
+    def compute(self, flow: bool | None = None) -> dict:
+        """:func:`rayiou`'s scores of the frames counted; with ``flow`` (default: when a frame was counted with
+        flow) also mAVE and OccScore."""
+        flow = self.flow_frames > 0 if flow is None else flow
+        extra = (self.ave_sum, self.ave_count) if flow else ()
+        return rayiou_from_counts(self.gt, self.pred, self.tp, *extra, space=self.space)
+
+    def scores(self) -> dict[str, float]:
+        """The headline scores: ``rayiou`` and ``rayiou@1/2/4`` and, when a frame was counted with flow, ``mave`` and
+        ``occ_score`` (NaN where undefined)."""
+        result = self.compute()
+        flow = ("mave", "occ_score") if self.flow_frames else ()
+        return {key: float(result[key]) for key in ("rayiou", *(f"rayiou@{t}" for t in RAYIOU_THRESHOLDS), *flow)}
 
 
 def _ray_flow(flow: np.ndarray, voxel: np.ndarray, name: str) -> np.ndarray:

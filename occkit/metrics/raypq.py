@@ -1,7 +1,7 @@
 """RayPQ: panoptic quality on the rays of the RayIoU protocol (SparseOcc, ``loaders/ray_pq.py`` and ``main_raypq``),
 value for value.
 
-The rays are RayIoU's (:func:`occkit.metrics.rayiou.cast_rays_exact`): each ray reads the class, the instance id and
+The rays are RayIoU's (:func:`occkit.metrics.rayiou.cast_frame`): each ray reads the class, the instance id and
 the depth of the voxel it stops in, in the prediction and in the ground truth, and only rays whose ground truth stops
 on something other than free space count. Per depth threshold ``t`` (1, 2, 4 m) and class, segments are matched as
 in panoptic segmentation, with the rays as pixels:
@@ -23,13 +23,13 @@ Inputs are Occ3D grids ``(200, 200, 16)`` of class ids (17 = free) and of instan
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import numpy as np
 
 from occkit.classes import THING_CLASSES
 from occkit.label_space import OCC3D_SPACE
-from occkit.metrics.rayiou import RAYIOU_THRESHOLDS, cast_rays_exact
+from occkit.metrics.rayiou import RAYIOU_THRESHOLDS, FrameRays, cast_frame
 
 __all__ = ["THING_CLASSES", "MIN_SEGMENT_RAYS", "RayPQCounts", "raypq"]
 
@@ -86,12 +86,19 @@ class RayPQCounts:
     def add_frame(self, gt: np.ndarray, pred: np.ndarray, gt_instances: np.ndarray, pred_instances: np.ndarray,
                   origins: np.ndarray) -> None:  # fmt: skip
         """One frame's grids: cast the rays from ``origins`` through both and count the non-free ground-truth rays."""
-        gt_label, gt_dist, gt_voxel = cast_rays_exact(gt, origins, voxels=True)
-        pred_label, pred_dist, pred_voxel = cast_rays_exact(pred, origins, voxels=True)
-        valid = gt_label != _FREE
-        gt_id = np.asarray(gt_instances)[tuple(gt_voxel[valid].T)]
-        pred_id = np.asarray(pred_instances)[tuple(pred_voxel[valid].T)]
-        self.add_rays(pred_label[valid], gt_label[valid], pred_id, gt_id, np.abs(pred_dist[valid] - gt_dist[valid]))
+        self.add_cast(cast_frame(gt, pred, origins), gt_instances, pred_instances)
+
+    def add_cast(self, rays: FrameRays, gt_instances: np.ndarray, pred_instances: np.ndarray) -> None:
+        """One frame's rays as :func:`~occkit.metrics.rayiou.cast_frame` cast them for RayIoU, with the frame's
+        ``(200, 200, 16)`` ground-truth and predicted instance grids."""
+        gt_id = np.asarray(gt_instances)[tuple(rays.gt_voxel.T)]
+        pred_id = np.asarray(pred_instances)[tuple(rays.pred_voxel.T)]
+        self.add_rays(rays.pred_label, rays.gt_label, pred_id, gt_id, rays.depth_error)
+
+    def reduce(self, reduce: Callable[[np.ndarray], np.ndarray]) -> None:
+        """Replace every count by ``reduce(count)``: a sum over distributed ranks, which every rank calls alike."""
+        for name in ("tp", "iou", "fp", "fn"):
+            setattr(self, name, np.asarray(reduce(getattr(self, name))).astype(getattr(self, name).dtype))
 
     def merge(self, other: RayPQCounts) -> None:
         """Add another set of counts (of other frames, same thresholds)."""
