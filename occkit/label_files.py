@@ -48,8 +48,8 @@ def write_occ3d_labels(
     reproducible; with ``flow``, also the occupancy flow as the CVPR 2024 challenge's OpenOcc v2 files carry it
     (key ``flow``, float32 ``(X, Y, Z, 2)`` ``vx, vy`` in m/s in the labels' frame); with ``instances``, the
     panoptic instance id of every voxel (key ``instances``, int32 ``(X, Y, Z)``, 0 for stuff and free space) and
-    ``instance_tokens`` id -> nuScenes instance token (keys ``instance_ids`` int32 ``(K,)`` and ``instance_tokens``
-    ``(K,)`` strings, ascending ids)."""
+    ``instance_tokens`` id -> nuScenes instance token, empty for an object the sample does not annotate (keys
+    ``instance_ids`` int32 ``(K,)`` and ``instance_tokens`` ``(K,)`` strings, ascending ids)."""
     arrays = {"semantics": np.asarray(semantics, np.uint8), "mask_lidar": np.asarray(mask_lidar, np.uint8),
               "mask_camera": np.asarray(mask_camera, np.uint8)}  # fmt: skip
     if flow is not None:

@@ -372,7 +372,7 @@ def test_mask_inputs_are_checked():
 
 def test_panoptic_instance_ids_follow_objects_over_time_and_name_their_instance_token(tmp_path):
     """labels.npz carries each voxel's object (the world's id + 1) for thing classes, 0 elsewhere, the same id in
-    every frame, and the nuScenes instance token of each id; annotated objects' tokens are the instance table's."""
+    every frame, and the nuScenes instance token of each id that the sample annotates (empty for the others)."""
     import json
 
     from occkit.classes import OCC3D, THING_CLASSES
@@ -399,8 +399,13 @@ def test_panoptic_instance_ids_follow_objects_over_time_and_name_their_instance_
     assert shared
     tokens = [dict(zip(f["instance_ids"].tolist(), f["instance_tokens"].tolist(), strict=True)) for f in frames]
     for instance in shared:
-        assert tokens[0][instance] == tokens[1][instance]
+        assert tokens[0][instance] == tokens[1][instance] or "" in (tokens[0][instance], tokens[1][instance])
         classes = [np.bincount(f["semantics"][f["instances"] == instance]).argmax() for f in frames]
         assert classes[0] == classes[1]
-    annotated = {a["instance_token"] for a in annotations}
-    assert annotated & set(tokens[0].values())
+    # A token names the object's annotation in that very sample; an object the sample does not annotate has none.
+    tokens_of = [path.parent.name for path in sorted(root.glob("gts/*/*/labels.npz"),
+                                                     key=lambda p: samples[p.parent.name]["timestamp"])]  # fmt: skip
+    for sample_token, named in zip(tokens_of, tokens, strict=True):
+        annotated = {a["instance_token"] for a in annotations if a["sample_token"] == sample_token}
+        assert set(named.values()) - {""} == annotated & set(named.values()) and annotated & set(named.values())
+    assert any("" in named.values() for named in tokens)  # unseen objects: voxels, but no annotation

@@ -354,13 +354,50 @@ def simulate_scene(config: SimConfig, index: int, root: Path, progress: Callable
                 "ego_pose": scene.pose_record(camera_ego2global),
             }
 
+        # The objects annotated in this frame: those in range that a LiDAR point or a camera pixel sees.
+        ego_xy = ego2global[:2, 3]
+        annotated: set[int] = set()
+        lidar_counts = np.bincount(key_instances[key_instances >= 0]) if (key_instances >= 0).any() else np.zeros(0)
+        for box in world.boxes(t_key):
+            if np.hypot(*(box.center[:2] - ego_xy)) > ANNOTATION_RANGE:
+                continue
+            num_lidar = int(lidar_counts[box.instance]) if box.instance < lidar_counts.shape[0] else 0
+            pixels = [int((view.instance == box.instance).sum()) for view in views]
+            if num_lidar == 0 and sum(pixels) == 0:
+                continue
+            annotated.add(box.instance)
+            with timer("boxes"):
+                visibility = _box_visibility(box, views)
+            annotations[box.instance].append(
+                (
+                    k,
+                    {
+                        "token": scene.token("sample_annotation", box.instance, k),
+                        "sample_token": sample_token,
+                        "instance_token": scene.token("instance", box.instance),
+                        "visibility_token": visibility,
+                        "attribute_tokens": [scene.shared_token("attribute", box.attribute)] if box.attribute else [],
+                        "translation": [float(v) for v in box.center + scene.offset],
+                        "size": [float(v) for v in box.size],
+                        "rotation": [float(v) for v in yaw_quaternion(box.yaw)],
+                        "prev": "",
+                        "next": "",
+                        "num_lidar_pts": num_lidar,
+                        "num_radar_pts": 0,
+                        "category": box.category,
+                    },
+                )
+            )
+
         primitives = world.primitives(t_key)
         with timer("labels"):
             velocity = world.primitive_velocities(t_key)
             semantics, flow, instances = occupancy_flow_labels(primitives, velocity, world.ground, ego2global,
                                                                OCC3D_GRID, instances=True)  # fmt: skip
-            # An object's id is the world's (+ 1), the same in every frame; its token is the instance table's.
-            instance_tokens = {int(i): scene.token("instance", int(i) - 1) for i in np.unique(instances[instances > 0])}
+            # An object's id is the world's (+ 1), the same in every frame; its token is the instance table's where
+            # this sample annotates it, and empty where it does not (unseen: no annotation, maybe no instance record).
+            instance_tokens = {int(i): scene.token("instance", int(i) - 1) if int(i) - 1 in annotated else ""
+                               for i in np.unique(instances[instances > 0])}  # fmt: skip
         with timer("mask_lidar"):
             global2ego = np.linalg.inv(ego2global)
             rays = []
@@ -386,38 +423,6 @@ def simulate_scene(config: SimConfig, index: int, root: Path, progress: Callable
                 lidar_file = Path(key_sweep.filename).name
                 sparse = surroundocc_labels(primitives, world.ground, ego2global @ lidar2ego, SURROUNDOCC_GRID)
                 write_surroundocc_labels(scene.root / "surroundocc" / "samples" / f"{lidar_file}.npy", sparse)
-
-        ego_xy = ego2global[:2, 3]
-        lidar_counts = np.bincount(key_instances[key_instances >= 0]) if (key_instances >= 0).any() else np.zeros(0)
-        for box in world.boxes(t_key):
-            if np.hypot(*(box.center[:2] - ego_xy)) > ANNOTATION_RANGE:
-                continue
-            num_lidar = int(lidar_counts[box.instance]) if box.instance < lidar_counts.shape[0] else 0
-            pixels = [int((view.instance == box.instance).sum()) for view in views]
-            if num_lidar == 0 and sum(pixels) == 0:
-                continue
-            with timer("boxes"):
-                visibility = _box_visibility(box, views)
-            annotations[box.instance].append(
-                (
-                    k,
-                    {
-                        "token": scene.token("sample_annotation", box.instance, k),
-                        "sample_token": sample_token,
-                        "instance_token": scene.token("instance", box.instance),
-                        "visibility_token": visibility,
-                        "attribute_tokens": [scene.shared_token("attribute", box.attribute)] if box.attribute else [],
-                        "translation": [float(v) for v in box.center + scene.offset],
-                        "size": [float(v) for v in box.size],
-                        "rotation": [float(v) for v in yaw_quaternion(box.yaw)],
-                        "prev": "",
-                        "next": "",
-                        "num_lidar_pts": num_lidar,
-                        "num_radar_pts": 0,
-                        "category": box.category,
-                    },
-                )
-            )
 
         scene.rows["sample"].append(
             {
