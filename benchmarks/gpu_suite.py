@@ -8,7 +8,8 @@ For each model (default :data:`MODELS`, the paper entries the papers report spee
 * **inference**: ``occkit bench`` (:func:`occkit.bench.run_bench`) at fp32 and under fp16 and bf16 autocast (bf16
   only on a CPU), batch 1, on the bench's 1600 x 900 synthetic key frame: median and p90 latency, FPS, peak memory,
   the same-run GEMM peak at that precision and the fraction reached, stage times; with ``--compile`` also the
-  fast path with ``torch.compile`` at fp16 (CUDA graphs on a GPU);
+  fast path with ``torch.compile`` at fp16 (CUDA graphs on a GPU), and with ``--graphs`` each precision with the
+  network in NHWC replayed from a CUDA graph, and at fp16 once more with cuDNN's algorithm search;
 * **agreement**: the arg-max of the occupancy logits under fp16 / bf16 autocast against fp32, on that frame, over
   every voxel (random weights, or the shipped ones for a CPU-sized entry that has them), and of the fp32 network
   replayed from a CUDA graph;
@@ -221,12 +222,18 @@ def run_model(entry: str, args: argparse.Namespace, device: torch.device, train_
                           gemm_repeats=1 if quick else 3, data=args.data)  # fmt: skip
         _section(result["inference"], precision, partial(run_bench, cfg, log=log))
     if "inference" not in args.skip and args.graphs is not None and (not args.graphs or entry in args.graphs):
-        for precision in _precisions(device):
+        # The graphed rows in NHWC (faster for every camera model on the H200, channels_last_fp16.json), and the
+        # fp16 one again with cuDNN's algorithm search, as a deployment with fixed input sizes can run.
+        searches = [(precision, False) for precision in _precisions(device)]
+        searches += [("fp16", True)] if device.type == "cuda" else []
+        for precision, search in searches:
             cfg = BenchConfig(model=entry, device=str(device), precision=precision, iters=1 if quick else 20,
                               warmup=1 if quick else 5, stage_iters=1 if quick else 3,
                               gemm_size=256 if quick else None, gemm_repeats=1 if quick else 3, data=args.data,
-                              optimizations=("fixed_calibration", "fold_bn", "cuda_graph"))  # fmt: skip
-            _section(result["inference"], f"{precision}_cuda_graph", partial(run_bench, cfg, log=log))
+                              optimizations=("fixed_calibration", "fold_bn", "channels_last", "cuda_graph"),
+                              cudnn_benchmark=search)  # fmt: skip
+            name = f"{precision}_cuda_graph" + ("_cudnn_search" if search else "")
+            _section(result["inference"], name, partial(run_bench, cfg, log=log))
     if args.compile is not None and (not args.compile or entry in args.compile):
         cfg = BenchConfig(model=entry, device=str(device), precision="fp16" if device.type == "cuda" else "fp32",
                           iters=1 if quick else 20, warmup=1 if quick else 5, gemm_size=256 if quick else None,

@@ -208,6 +208,17 @@ def test_bench_cli_end_to_end(world, tmp_path, capsys):
     result = json.loads(out.read_text())
     assert result["model"] == "flashocc_tiny" and result["batch"] == 1 and len(result["latency_ms"]["all"]) == 2
     assert result["machine"]["threads"] == 1 and result["fast_path"]["applied"] == ["fold_bn", "channels_last"]
+    assert result["cudnn_benchmark"] is False
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_cudnn_algorithm_search_is_recorded_and_switched_off_after_the_run(world):
+    torch.backends.cudnn.benchmark = False
+    config = BenchConfig(model="flashocc_tiny", device="cuda", data=str(world), cudnn_benchmark=True,
+                         optimizations=("fixed_calibration", "fold_bn", "channels_last", "cuda_graph"), **QUICK)
+    result = run_bench(config, log=lambda _: None)
+    assert result["cudnn_benchmark"] is True and "cuDNN's algorithm search" in format_report(result)
+    assert torch.backends.cudnn.benchmark is False
 
 
 @pytest.mark.parametrize(
@@ -216,6 +227,7 @@ def test_bench_cli_end_to_end(world, tmp_path, capsys):
         (["--model", "resnet"], "unknown model 'resnet'"),
         (["--model", "flashocc_tiny", "--optimizations", "fold_bn,int8"], "unknown optimization(s) int8"),
         (["--model", "flashocc_tiny", "--precision", "fp16"], "fp16 needs a CUDA device"),
+        (["--model", "flashocc_tiny", "--cudnn-benchmark"], "cudnn_benchmark needs a CUDA device"),
         (["--model", "flashocc_tiny", "--device", "tpu"], "--device must be cpu, cuda or cuda:N, got 'tpu'"),
         (["--model", "flashocc_tiny", "--data", "no/such/folder"], "--data no/such/folder does not exist"),
     ],

@@ -22,6 +22,8 @@ def test_the_gpu_suite_dry_runs_on_the_cpu_and_writes_one_json_per_model(tmp_pat
     assert set(result["inference"]) == {"fp32", "bf16", "fp32_cuda_graph", "bf16_cuda_graph"}
     graph_step = result["inference"]["fp32_cuda_graph"]["fast_path"]["steps"][-1]
     assert graph_step["optimization"] == "cuda_graph" and not graph_step["kept"]
+    assert result["inference"]["fp32_cuda_graph"]["fast_path"]["applied"] == ["fixed_calibration", "fold_bn",
+                                                                             "channels_last"]  # fmt: skip
     assert "CUDA device" in graph_step["error"]
     for bench in result["inference"].values():
         assert bench["latency_ms"]["median"] > 0 and bench["fps"] > 0 and bench["peak_memory"]["bytes"] > 0

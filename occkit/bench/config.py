@@ -33,6 +33,10 @@ class BenchConfig:
     """Untimed passes first (allocator, spconv's rulebooks, the cached geometry, compilation)."""
     threads: int | None = None
     """CPU threads for PyTorch; None keeps its default."""
+    cudnn_benchmark: bool = False
+    """Let cuDNN time its algorithms for each convolution on the first passes and keep the fastest
+    (``torch.backends.cudnn.benchmark``), as a deployment with fixed input sizes can; CUDA only. Off: PyTorch's
+    default, cuDNN's heuristic choice."""
     optimizations: str | tuple[str, ...] = "auto"
     """``auto`` (measure each of :data:`~occkit.models.inference.OPTIMIZATIONS`, keep those that speed up) or the
     steps to apply as they are (an empty tuple: none)."""
@@ -66,6 +70,8 @@ class BenchConfig:
             raise ValueError(f"device must be cpu or cuda[:N], got {self.device!r}")
         if device.type == "cuda" and not torch.cuda.is_available():
             raise ValueError(f"device {self.device!r} asked for but CUDA is not available")
+        if device.type == "cpu" and self.cudnn_benchmark:
+            raise ValueError("cudnn_benchmark needs a CUDA device (cuDNN runs the convolutions there only)")
         if device.type == "cpu" and self.precision == "fp16":
             raise ValueError("precision fp16 needs a CUDA device (CPU matmuls in fp16 are orders slower); use bf16")
         counts = {"batch_size": self.batch_size, "iters": self.iters, "ablation_iters": self.ablation_iters,

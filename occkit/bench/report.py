@@ -17,7 +17,8 @@ def format_report(result: dict) -> str:
         f"  achieved {result['achieved_gflops']:.1f} GFLOP/s = {100 * result['gemm_fraction']:.0f}% of the GEMM peak "
         f"{result['gemm_peak_gflops']:.1f} GFLOP/s ({100 * result['gemm_fraction_paired']:.0f}% paired)",
         f"  peak memory {result['peak_memory']['bytes'] / 2**20:.0f} MiB ({result['peak_memory']['measure']})",
-        f"  fast path: {', '.join(result['fast_path']['applied']) or 'none'}",
+        f"  fast path: {', '.join(result['fast_path']['applied']) or 'none'}"
+        + ("; cuDNN's algorithm search" if result.get("cudnn_benchmark") else ""),
         "",
         f"  {'stage':<20} {'ms':>9} {'share':>6} {'GMACs':>8} {'GFLOP/s':>8} {'of GEMM':>8} {'ms > GEMM':>10}",
     ]

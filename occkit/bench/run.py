@@ -36,7 +36,7 @@ _MACS_CONVENTION = (
 def run_bench(cfg: BenchConfig, log: Callable[[str], None] = print) -> dict:
     """Run the benchmark of ``cfg`` and return its JSON-ready result (the package docstring lists its steps)."""
     device = torch.device(cfg.device)
-    with _run_settings(device, cfg.threads):
+    with _run_settings(device, cfg.threads, cfg.cudnn_benchmark):
         torch.manual_seed(0)
         batch = load_sample(cfg.model, cfg.data, cfg.batch_size, log).to(device)
         runner = ModelRunner(batch, device, cfg.precision)
@@ -44,7 +44,8 @@ def run_bench(cfg: BenchConfig, log: Callable[[str], None] = print) -> dict:
         model = zoo.build(cfg.model).to(device).eval()
         result: dict = {"model": cfg.model, "architecture": architecture, "device": str(device),
                         "precision": cfg.precision, "batch": cfg.batch_size, "iters": cfg.iters,
-                        "warmup": cfg.warmup, "input": _input_summary(batch, cfg.data)}  # fmt: skip
+                        "warmup": cfg.warmup, "cudnn_benchmark": cfg.cudnn_benchmark,
+                        "input": _input_summary(batch, cfg.data)}  # fmt: skip
         log(f"{cfg.model}: counting parameters and MACs")
         if cfg.count_detection and getattr(model, "detection_head", None) is not None:
             result["params_with_detection"] = count_parameters(model)
@@ -93,18 +94,21 @@ def run_bench(cfg: BenchConfig, log: Callable[[str], None] = print) -> dict:
 
 
 @contextlib.contextmanager
-def _run_settings(device: torch.device, threads: int | None) -> Iterator[None]:
-    """The thread count for the run and, on CPUs, subnormal floats flushed to zero, as occkit's training and
-    evaluation do (they run an order of magnitude slower on x86; GPUs flush them too); both restored afterwards."""
-    previous_threads = torch.get_num_threads()
+def _run_settings(device: torch.device, threads: int | None, cudnn_benchmark: bool = False) -> Iterator[None]:
+    """The thread count for the run; on CPUs, subnormal floats flushed to zero, as occkit's training and evaluation
+    do (they run an order of magnitude slower on x86; GPUs flush them too); cuDNN's algorithm search as asked. All
+    restored afterwards."""
+    previous_threads, previous_search = torch.get_num_threads(), torch.backends.cudnn.benchmark
     if threads is not None:
         torch.set_num_threads(threads)
     if device.type == "cpu":
         torch.set_flush_denormal(True)
+    torch.backends.cudnn.benchmark = cudnn_benchmark
     try:
         yield
     finally:
         torch.set_num_threads(previous_threads)
+        torch.backends.cudnn.benchmark = previous_search
         if device.type == "cpu":
             torch.set_flush_denormal(False)
 

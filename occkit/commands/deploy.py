@@ -173,6 +173,9 @@ def add_bench(parser: argparse.ArgumentParser) -> None:
                         help="fast path: auto (default) measures fixed_calibration, fold_bn, channels_last, compile "
                              "and cuda_graph (CUDA only) one by one and keeps those that speed up; none; or a comma "
                              "list to apply")
+    parser.add_argument("--cudnn-benchmark", action="store_true",
+                        help="let cuDNN time its algorithms for each convolution and keep the fastest, as a deployment "
+                             "with fixed input sizes can (CUDA only; default: cuDNN's heuristic choice)")
     parser.add_argument("--gemm-size", type=integer(16, 65536), default=None,
                         help="n of the n x n GEMM yardstick (default 4096 on CPU, 8192 on CUDA)")
     parser.add_argument("--miou", type=number(0, 100), default=None,
@@ -192,6 +195,7 @@ def run_bench(args: argparse.Namespace) -> int:
         check_memory(3 * 4 * size**2, f"the {size} x {size} GEMM yardstick (three fp32 matrices)", "--gemm-size")
     config = BenchConfig(model=args.model, device=args.device, precision=args.precision, batch_size=args.batch,
                          iters=args.iters, warmup=args.warmup, threads=args.threads, optimizations=args.optimizations,
+                         cudnn_benchmark=args.cudnn_benchmark,
                          gemm_size=args.gemm_size, data=None if args.data is None else str(args.data),
                          miou=args.miou)  # fmt: skip
     result = run_bench(config)
