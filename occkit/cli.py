@@ -29,14 +29,15 @@ COMMANDS: dict[str, Command] = {
     "label": ("build occupancy labels and visibility masks from a dataset's LiDAR sweeps, lidarseg and boxes",
               data.add_label, data.run_label),
     "eval-preds": (
-        "score Occ3D predictions against a gts/ tree: mIoU, IoU, RayIoU (and mAVE / OccScore when they carry flow)",
+        "score Occ3D predictions against a gts/ tree: mIoU, IoU, RayIoU (mAVE / OccScore with flow, RayPQ with "
+        "instances)",
         runs.add_eval_preds,
         runs.run_eval_preds,
     ),
     "train": ("train a model: checkpoints, logs, plots, validation (torchrun for several processes)", runs.add_train,
               runs.run_train),
-    "eval": ("score a checkpoint on a dataset split: mIoU, IoU, RayIoU (mAVE, OccScore with a flow head), per-class "
-             "table and plots", runs.add_eval, runs.run_eval),
+    "eval": ("score a checkpoint on a dataset split: mIoU, IoU, RayIoU (mAVE, OccScore with a flow head; RayPQ "
+             "panoptic), per-class table and plots", runs.add_eval, runs.run_eval),
     "predict": ("write Occ3D-format <token>.npz predictions of a checkpoint", runs.add_predict, runs.run_predict),
     "convert": ("convert an official FlashOcc / BEVDet or DAOcc checkpoint to occkit weights (.safetensors) with "
                 "a report", deploy.add_convert, deploy.run_convert),
