@@ -92,8 +92,8 @@ def add_eval(parser: argparse.ArgumentParser) -> None:
                         help="visibility mask for mIoU/IoU (default: the label space's, camera for Occ3D, none for "
                              "SurroundOcc)")
     parser.add_argument("--save-predictions", action="store_true", help="also write <token>.npz predictions")
-    parser.add_argument("--batch-size", type=integer(1, 4096), default=1)
-    parser.add_argument("--workers", type=integer(0, 256), default=2, help="data loading processes")
+    parser.add_argument("--batch-size", type=integer(1, 4096), default=1, help="frames per forward pass (default 1)")
+    parser.add_argument("--workers", type=integer(0, 256), default=2, help="data loading processes (default 2)")
     parser.add_argument("--device", default=None, help="cpu, cuda (default: CUDA when available)")
 
 
@@ -125,8 +125,8 @@ def add_predict(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--data", type=Path, required=True, help="dataset root (nuScenes layout)")
     parser.add_argument("--split", default="val", help="split to predict: train, val, test, all, ... (default val)")
     parser.add_argument("--out", type=Path, required=True, help="folder for <token>.npz files (Occ3D format)")
-    parser.add_argument("--batch-size", type=integer(1, 4096), default=1)
-    parser.add_argument("--workers", type=integer(0, 256), default=2, help="data loading processes")
+    parser.add_argument("--batch-size", type=integer(1, 4096), default=1, help="frames per forward pass (default 1)")
+    parser.add_argument("--workers", type=integer(0, 256), default=2, help="data loading processes (default 2)")
     parser.add_argument("--device", default=None, help="cpu, cuda (default: CUDA when available)")
 
 
