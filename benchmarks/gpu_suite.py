@@ -51,7 +51,7 @@ from occkit.data.dataset import OccupancyDataset
 from occkit.data.loader import sample_loader
 from occkit.engine.reference_frame import simulate_reference_world
 from occkit.machine import gpu_driver
-from occkit.models.inference import has_sparse_convolutions, prepare_for_inference
+from occkit.models.inference import graphed_sparse_convolutions, prepare_for_inference
 from occkit.shipped import shipped_entries
 
 MODELS = ("flashocc_m0", "flashocc_m1", "da_occ", "da_occ_16f", "daocc", "daocc_no_detection")
@@ -76,7 +76,7 @@ def _synchronize(device: torch.device) -> None:
 def agreement(entry: str, device: torch.device, data: Path | None) -> dict[str, float]:
     """Share of voxels whose arg-max class under each reduced-precision autocast equals fp32's, on the bench frame,
     over all voxels and outside the near ties (:data:`NEAR_TIE`, whose share is ``near_tie_share``); on CUDA also the
-    fp32 network replayed from a CUDA graph (a camera model's ``cuda_graph`` fast path)."""
+    fp32 network replayed from a CUDA graph (the ``cuda_graph`` fast path; DAOcc's sparse encoder runs before it)."""
     weights = "synthetic" if entry in shipped_entries() else None
     torch.manual_seed(0)
     model = zoo.build(entry, weights=weights).to(device).eval()
@@ -95,7 +95,7 @@ def agreement(entry: str, device: torch.device, data: Path | None) -> dict[str, 
                 predicted = model(batch).occupancy.float().argmax(dim=1)
             shares[precision] = float((predicted == reference).float().mean())
             shares[f"{precision}_outside_near_ties"] = float((predicted == reference)[clear].float().mean())
-        if device.type == "cuda" and not has_sparse_convolutions(model):
+        if device.type == "cuda" and not graphed_sparse_convolutions(model):
             graphed = prepare_for_inference(copy.deepcopy(model), ("fixed_calibration", "cuda_graph"))
             for _ in range(2):  # the capture, then a replay
                 predicted = graphed(batch).occupancy.argmax(dim=1)

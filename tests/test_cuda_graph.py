@@ -1,5 +1,6 @@
 """The ``cuda_graph`` fast-path step (occkit.models.cuda_graph): what a CPU can check of it, that the camera
-networks make no host synchronisation a graph capture would refuse, and graph against eager on CUDA."""
+networks and DAOcc's network after its sparse encoder make no host synchronisation a graph capture would refuse, and
+graph against eager on CUDA."""
 
 from __future__ import annotations
 
@@ -14,7 +15,12 @@ from torch.utils._python_dispatch import TorchDispatchMode
 from occkit import zoo
 from occkit.models.base import OccupancyModel
 from occkit.models.cuda_graph import NetworkGraphs, clone_tensors
-from occkit.models.inference import capture_cuda_graphs, eager_network, prepare_for_inference
+from occkit.models.inference import (
+    capture_cuda_graphs,
+    eager_network,
+    graphed_sparse_convolutions,
+    prepare_for_inference,
+)
 
 aten = torch.ops.aten
 
@@ -114,11 +120,34 @@ def test_graphs_run_the_network_eagerly_on_cpu_tensors_and_a_copy_starts_without
     assert isinstance(copied.network_graphs, NetworkGraphs) and copied.network_graphs is not model.network_graphs
 
 
-def test_cuda_graph_refuses_a_cpu_model_and_sparse_convolutions():
+def test_cuda_graph_refuses_a_cpu_model_and_sparse_convolutions_inside_the_graph():
     with pytest.raises(ValueError, match="CUDA device"):
         capture_cuda_graphs(zoo.build("flashocc_tiny").eval())
-    with pytest.raises(ValueError, match="sparse convolutions"):
+    with pytest.raises(ValueError, match="CUDA device"):  # its sparse encoder runs before the graph
         capture_cuda_graphs(zoo.build("daocc_tiny").eval())
+    assert not graphed_sparse_convolutions(zoo.build("daocc_tiny"))
+    # The flow head's motion input needs the points inside the network: the encoder cannot leave the graph.
+    with pytest.raises(ValueError, match="sparse convolutions"):
+        capture_cuda_graphs(zoo.build("daocc_tiny_flow").eval())
+
+
+def test_daocc_runs_its_sparse_encoder_before_the_graph_and_the_rest_without_host_synchronisation(bench_world):
+    """What a GPU captures of DAOcc: the network from the LiDAR BEV on, with the same outputs as the whole network
+    and no operator a capture refuses; on CPU tensors the graphs run it eagerly."""
+    model = prepare_for_inference(zoo.build("daocc_tiny"), ("fixed_calibration",))
+    batch = _tiny_batch("daocc_tiny", bench_world)
+    with torch.no_grad():
+        expected = model(batch).occupancy
+        plan = model.current_plan(batch)
+        inputs = model.graph_inputs(model.inputs(batch))
+        assert model.eager_stages() == ("lidar_encoder",) and set(inputs) == {"images", "lidar_bev"}
+        with HostSyncs() as mode:
+            dense = model.network(inputs, plan).occupancy
+        model.network_graphs = NetworkGraphs()
+        graphed = model(batch).occupancy
+    assert mode.found == []
+    torch.testing.assert_close(dense, expected, rtol=0, atol=0)
+    torch.testing.assert_close(graphed, expected, rtol=0, atol=0)
 
 
 def test_eager_network_lifts_the_graphs_inside_its_block():
@@ -148,6 +177,20 @@ def test_replayed_outputs_are_clones_that_a_later_replay_cannot_overwrite():
     assert torch.equal(cloned.logits, torch.ones(3))
     assert torch.equal(cloned.extra["pair"].first, torch.ones(3)) and cloned.extra["pair"].second == 2
     assert torch.equal(cloned.extra["list"][0], torch.ones(3))
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA only")
+def test_daocc_replays_its_dense_network_around_the_eager_sparse_encoder(bench_world):
+    model = prepare_for_inference(zoo.build("daocc_tiny").cuda(), ("fixed_calibration",))
+    batch = _tiny_batch("daocc_tiny", bench_world).to("cuda")
+    frames = [batch, dataclasses.replace(batch, images=batch.images.flip(-1))]
+    with torch.no_grad():
+        eager = [model(frame).occupancy for frame in frames]
+        capture_cuda_graphs(model)
+        graphed = [model(frame).occupancy for frame in frames]
+    assert len(model.network_graphs) == 1
+    for expected, replayed in zip(eager, graphed, strict=True):
+        torch.testing.assert_close(replayed, expected, rtol=1e-4, atol=1e-4)
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="CUDA only")

@@ -110,10 +110,20 @@ class OccupancyModel(nn.Module, metaclass=abc.ABCMeta):
         if self.network_graphs is None or self.training:
             output = self.network(inputs, plan)
         else:
-            output = self.network_graphs(self.network, inputs, plan)
+            output = self.network_graphs(self.network, self.graph_inputs(inputs), plan)
         if memory is not None and self.temporal is not None:
             memory.push(output.history_state, batch.ego2global, batch.occ_aug)
         return output
+
+    def eager_stages(self) -> tuple[str, ...]:
+        """The child modules that run before a CUDA graph's replay, eagerly, because a graph cannot capture them
+        (:meth:`graph_inputs` runs them); none by default."""
+        return ()
+
+    def graph_inputs(self, inputs: dict[str, Tensor]) -> dict[str, Tensor]:
+        """The inputs of the :meth:`network` that a CUDA graph replays: ``inputs`` with the :meth:`eager_stages` run
+        on them and their outputs in their place; ``inputs`` by default."""
+        return inputs
 
     @torch.no_grad()
     def predict(self, batch: Batch, *, memory: StreamMemory | None = None) -> OccPrediction:

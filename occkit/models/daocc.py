@@ -224,7 +224,23 @@ class DAOcc(OccupancyModel):
 
     def forward(self, batch: Batch, detect: bool | None = None) -> ModelOutput:
         """Run the model; the detection head runs in training, or when ``detect`` is True."""
-        return self.network(self.inputs(batch), self.current_plan(batch), detect)
+        if detect or self.training or self.network_graphs is None:
+            return self.network(self.inputs(batch), self.current_plan(batch), detect)
+        return super().forward(batch)  # the occupancy network, from a CUDA graph
+
+    def eager_stages(self) -> tuple[str, ...]:
+        """The LiDAR encoder (spconv builds its rulebooks on the host, which a CUDA graph cannot capture), unless a
+        flow head's motion input needs the points inside the network too."""
+        if self.lidar_encoder is None or (self.flow_head is not None and self.flow_head.motion is not None):
+            return ()
+        return ("lidar_encoder",)
+
+    def graph_inputs(self, inputs: dict[str, Tensor]) -> dict[str, Tensor]:
+        if "lidar_encoder" not in self.eager_stages() or "lidar_bev" in inputs:
+            return inputs
+        graphed = {name: value for name, value in inputs.items() if name not in ("points", "num_points")}
+        graphed["lidar_bev"] = self.lidar_encoder(inputs["points"], inputs["num_points"])
+        return graphed
 
     def deployment(self, batch: Batch) -> Deployment:
         return FusionInputs(self, batch)

@@ -18,7 +18,8 @@ keeps the ones that speed the model up; see ``docs/benchmarks.md``):
 ``cuda_graph``
     The network (:meth:`~occkit.models.base.OccupancyModel.network`) captured as a CUDA graph and replayed
     (:mod:`occkit.models.cuda_graph`): at batch 1 a GPU pass is bound by its hundreds of kernel launches, which a
-    replay issues in one call. CUDA only, and not for sparse convolutions (DAOcc's LiDAR path).
+    replay issues in one call. CUDA only; DAOcc's sparse LiDAR encoder runs eagerly before each replay (spconv
+    builds its rulebooks on the host) and hands the graph its BEV.
 
 Always done: eval mode and the detection branch removed (it runs only in training).
 
@@ -51,6 +52,7 @@ __all__ = [
     "capture_cuda_graphs",
     "eager_network",
     "has_sparse_convolutions",
+    "graphed_sparse_convolutions",
 ]
 
 #: The optional steps, in the order they are applied.
@@ -220,16 +222,27 @@ def compile_dense_stages(model: nn.Module) -> list[str]:
     return compiled
 
 
+def graphed_sparse_convolutions(model: nn.Module) -> bool:
+    """Whether a CUDA graph of ``model``'s networks would have to capture spconv layers: those outside every
+    occupancy model's :meth:`~occkit.models.base.OccupancyModel.eager_stages` (spconv builds its rulebooks on the
+    host, which a graph cannot capture)."""
+    eager = {id(layer) for module in model.modules() if isinstance(module, OccupancyModel)
+             for stage in module.eager_stages() for layer in module.get_submodule(stage).modules()}  # fmt: skip
+    return any(isinstance(m, spconv.SparseModule) and id(m) not in eager for m in model.modules())
+
+
 def capture_cuda_graphs(model: nn.Module) -> list[str]:
     """Let every occupancy model in ``model`` replay its network from CUDA graphs in eval mode
-    (:mod:`occkit.models.cuda_graph`); the names of those models.
+    (:mod:`occkit.models.cuda_graph`), its :meth:`~occkit.models.base.OccupancyModel.eager_stages` (DAOcc's sparse
+    LiDAR encoder) run eagerly before each replay; the names of those models.
 
     Raises:
-        ValueError: ``model`` is not on a CUDA device, or its network has sparse convolutions (spconv builds its
-            rulebooks on the host, which a graph cannot capture).
+        ValueError: ``model`` is not on a CUDA device, or the graph would have to capture sparse convolutions
+            (:func:`graphed_sparse_convolutions`).
     """
-    if has_sparse_convolutions(model):
-        raise ValueError("cuda_graph cannot capture sparse convolutions (spconv builds its rulebooks on the host)")
+    if graphed_sparse_convolutions(model):
+        raise ValueError("cuda_graph cannot capture sparse convolutions (spconv builds its rulebooks on the host) and "
+                         "this network needs them inside its graph")  # fmt: skip
     parameter = next(model.parameters(), None)
     if parameter is None or parameter.device.type != "cuda":
         raise ValueError("cuda_graph needs a model on a CUDA device")
