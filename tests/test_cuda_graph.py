@@ -131,9 +131,10 @@ def test_cuda_graph_refuses_a_cpu_model_and_sparse_convolutions_inside_the_graph
         capture_cuda_graphs(zoo.build("daocc_tiny_flow").eval())
 
 
-def test_daocc_runs_its_sparse_encoder_before_the_graph_and_the_rest_without_host_synchronisation(bench_world):
-    """What a GPU captures of DAOcc: the network from the LiDAR BEV on, with the same outputs as the whole network
-    and no operator a capture refuses; on CPU tensors the graphs run it eagerly."""
+def test_daocc_runs_its_sparse_encoder_outside_its_graphs_and_the_rest_without_host_synchronisation(bench_world):
+    """What a GPU captures of DAOcc: the camera branch, and the network from the two BEVs on (or from the LiDAR BEV
+    with the images), each with the same outputs as the whole network and no operator a capture refuses; on CPU
+    tensors the graphs run the network eagerly."""
     model = prepare_for_inference(zoo.build("daocc_tiny"), ("fixed_calibration",))
     batch = _tiny_batch("daocc_tiny", bench_world)
     with torch.no_grad():
@@ -143,11 +144,13 @@ def test_daocc_runs_its_sparse_encoder_before_the_graph_and_the_rest_without_hos
         assert model.eager_stages() == ("lidar_encoder",) and set(inputs) == {"images", "lidar_bev"}
         with HostSyncs() as mode:
             dense = model.network(inputs, plan).occupancy
+            camera = model.camera_bev({"images": inputs["images"]}, plan)
+            fused = model.network({**camera, "lidar_bev": inputs["lidar_bev"]}, plan).occupancy
         model.network_graphs = NetworkGraphs()
         graphed = model(batch).occupancy
     assert mode.found == []
-    torch.testing.assert_close(dense, expected, rtol=0, atol=0)
-    torch.testing.assert_close(graphed, expected, rtol=0, atol=0)
+    for output in (dense, fused, graphed):
+        torch.testing.assert_close(output, expected, rtol=0, atol=0)
 
 
 def test_eager_network_lifts_the_graphs_inside_its_block():
@@ -188,7 +191,7 @@ def test_daocc_replays_its_dense_network_around_the_eager_sparse_encoder(bench_w
         eager = [model(frame).occupancy for frame in frames]
         capture_cuda_graphs(model)
         graphed = [model(frame).occupancy for frame in frames]
-    assert len(model.network_graphs) == 1
+    assert len(model.network_graphs) == 2  # the camera branch, and the network from the two BEVs
     for expected, replayed in zip(eager, graphed, strict=True):
         torch.testing.assert_close(replayed, expected, rtol=1e-4, atol=1e-4)
 

@@ -15,6 +15,7 @@ on CPU tensors runs the network eagerly.
 from __future__ import annotations
 
 import dataclasses
+import functools
 from collections.abc import Callable, Mapping
 from typing import Any
 
@@ -23,7 +24,7 @@ from torch import Tensor
 
 from occkit.models.plans import plan_tensors, plan_with_tensors
 
-__all__ = ["NetworkGraphs", "clone_tensors"]
+__all__ = ["NetworkGraphs", "clone_tensors", "side_stream"]
 
 Network = Callable[[Mapping[str, Tensor], Any], Any]
 
@@ -108,6 +109,13 @@ class _CapturedNetwork:
                 self.static[name].copy_(tensor)
         self.graph.replay()
         return clone_tensors(self.output)
+
+
+@functools.cache
+def side_stream(device: torch.device) -> torch.cuda.Stream:
+    """A second stream of ``device``, one per process: where a model replays a graph beside eager work on the current
+    stream (DAOcc's camera branch beside its sparse LiDAR encoder)."""
+    return torch.cuda.Stream(device)
 
 
 def _named_tensors(inputs: Mapping[str, Tensor], plan: Any) -> dict[str, Tensor]:

@@ -26,6 +26,7 @@ from occkit.geometry.grid import OCC3D_GRID, VoxelGrid
 from occkit.geometry.se3 import invert_transform
 from occkit.models.base import Architecture, CameraInputs, Deployment, OccupancyModel, camera_images
 from occkit.models.bev_encoder import BevEncoder, BevEncoderConfig, ConvFuser
+from occkit.models.cuda_graph import side_stream
 from occkit.models.heads.center import CenterHead, CenterHeadConfig
 from occkit.models.heads.flow import FlowHead, FlowHeadConfig, check_motion_input
 from occkit.models.heads.occupancy import OccupancyHead, OccupancyHeadConfig
@@ -197,11 +198,17 @@ class DAOcc(OccupancyModel):
             inputs.update(points=batch.points, num_points=batch.num_points)
         return inputs
 
+    def camera_bev(self, inputs: Mapping[str, Tensor], plan: FusionPlan) -> dict[str, Tensor]:
+        """The camera branch: ``camera_bev (B, view.out_channels, X_bev, Y_bev)`` from ``images``."""
+        return {"camera_bev": self.view_transform(self.image_encoder(inputs["images"]), plan.sampling)}
+
     def encode(self, inputs: Mapping[str, Tensor], plan: FusionPlan) -> Tensor:
-        """The fused and encoded BEV ``(B, bev.neck_channels, X_bev, Y_bev)`` in the augmented LiDAR frame."""
+        """The fused and encoded BEV ``(B, bev.neck_channels, X_bev, Y_bev)`` in the augmented LiDAR frame; a ready
+        ``camera_bev`` or ``lidar_bev`` in ``inputs`` stands for its branch."""
         bevs = []
         if self.image_encoder is not None:
-            bevs.append(self.view_transform(self.image_encoder(inputs["images"]), plan.sampling))
+            camera_bev = inputs.get("camera_bev")
+            bevs.append(self.camera_bev(inputs, plan)["camera_bev"] if camera_bev is None else camera_bev)
         if self.lidar_encoder is not None:
             lidar_bev = inputs.get("lidar_bev")
             bevs.append(self.lidar_encoder(inputs["points"], inputs["num_points"]) if lidar_bev is None else lidar_bev)
@@ -224,9 +231,29 @@ class DAOcc(OccupancyModel):
 
     def forward(self, batch: Batch, detect: bool | None = None) -> ModelOutput:
         """Run the model; the detection head runs in training, or when ``detect`` is True."""
+        inputs, plan = self.inputs(batch), self.current_plan(batch)
         if detect or self.training or self.network_graphs is None:
-            return self.network(self.inputs(batch), self.current_plan(batch), detect)
-        return super().forward(batch)  # the occupancy network, from a CUDA graph
+            return self.network(inputs, plan, detect)
+        images = inputs.get("images")
+        if images is None or not images.is_cuda or "lidar_encoder" not in self.eager_stages():
+            return self.network_graphs(self.network, self.graph_inputs(inputs), plan)
+        return self._overlapped_replay(inputs, plan)
+
+    def _overlapped_replay(self, inputs: dict[str, Tensor], plan: FusionPlan) -> ModelOutput:
+        """The network from two CUDA graphs with the sparse LiDAR encoder between them, eager: the camera branch's
+        graph replays on a side stream while the encoder runs on the current one, whose host work (voxelization,
+        spconv's rulebooks, the sizes they wait for) then overlaps the camera branch on the device; the fusion, BEV
+        encoder and heads replay from the second graph once both BEVs exist."""
+        images = inputs["images"]
+        current, side = torch.cuda.current_stream(images.device), side_stream(images.device)
+        side.wait_stream(current)
+        with torch.cuda.stream(side):
+            camera_bev = self.network_graphs(self.camera_bev, {"images": images}, plan)["camera_bev"]
+        images.record_stream(side)  # read on the side stream: not to be reused before it has been
+        lidar_bev = self.lidar_encoder(inputs["points"], inputs["num_points"])
+        current.wait_stream(side)
+        camera_bev.record_stream(current)  # made on the side stream, read on this one
+        return self.network_graphs(self.network, {"camera_bev": camera_bev, "lidar_bev": lidar_bev}, plan)
 
     def eager_stages(self) -> tuple[str, ...]:
         """The LiDAR encoder (spconv builds its rulebooks on the host, which a CUDA graph cannot capture), unless a

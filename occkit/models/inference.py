@@ -18,8 +18,8 @@ keeps the ones that speed the model up; see ``docs/benchmarks.md``):
 ``cuda_graph``
     The network (:meth:`~occkit.models.base.OccupancyModel.network`) captured as a CUDA graph and replayed
     (:mod:`occkit.models.cuda_graph`): at batch 1 a GPU pass is bound by its hundreds of kernel launches, which a
-    replay issues in one call. CUDA only; DAOcc's sparse LiDAR encoder runs eagerly before each replay (spconv
-    builds its rulebooks on the host) and hands the graph its BEV.
+    replay issues in one call. CUDA only. DAOcc's sparse LiDAR encoder runs eagerly (spconv builds its rulebooks on
+    the host) while its camera branch replays from a graph on a side stream; the fusion and heads replay after.
 
 Always done: eval mode and the detection branch removed (it runs only in training).
 
@@ -234,7 +234,7 @@ def graphed_sparse_convolutions(model: nn.Module) -> bool:
 def capture_cuda_graphs(model: nn.Module) -> list[str]:
     """Let every occupancy model in ``model`` replay its network from CUDA graphs in eval mode
     (:mod:`occkit.models.cuda_graph`), its :meth:`~occkit.models.base.OccupancyModel.eager_stages` (DAOcc's sparse
-    LiDAR encoder) run eagerly before each replay; the names of those models.
+    LiDAR encoder) run eagerly outside them; the names of those models.
 
     Raises:
         ValueError: ``model`` is not on a CUDA device, or the graph would have to capture sparse convolutions
