@@ -390,7 +390,7 @@ class RayCounts:
 
     def merge(self, other: RayCounts) -> None:
         """Add the counts of other frames (same label space)."""
-        if other.space is not self.space:
+        if other.space != self.space:
             raise ValueError(f"cannot merge {other.space.name} ray counts into {self.space.name} ones")
         for name in ("gt", "pred", "tp", "ave_sum", "ave_count"):
             setattr(self, name, getattr(self, name) + getattr(other, name))
