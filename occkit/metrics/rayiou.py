@@ -351,6 +351,9 @@ class RayCounts:
         frames, flow_frames: frames counted, and of them those counted with flow.
     """
 
+    #: The summed arrays (what merging and reducing add up).
+    _SUMS = ("gt", "pred", "tp", "ave_sum", "ave_count")
+
     def __init__(self, space: LabelSpace = OCC3D_SPACE) -> None:
         self.space = space
         free, _, self._flow_ids = _protocol(space)
@@ -392,14 +395,14 @@ class RayCounts:
         """Add the counts of other frames (same label space)."""
         if other.space != self.space:
             raise ValueError(f"cannot merge {other.space.name} ray counts into {self.space.name} ones")
-        for name in ("gt", "pred", "tp", "ave_sum", "ave_count"):
+        for name in self._SUMS:
             setattr(self, name, getattr(self, name) + getattr(other, name))
         self.frames += other.frames
         self.flow_frames += other.flow_frames
 
     def reduce(self, reduce: Callable[[np.ndarray], np.ndarray]) -> None:
         """Replace every count by ``reduce(count)``: a sum over distributed ranks, which every rank calls alike."""
-        for name in ("gt", "pred", "tp", "ave_sum", "ave_count"):
+        for name in self._SUMS:
             setattr(self, name, np.asarray(reduce(getattr(self, name))).astype(getattr(self, name).dtype))
         self.frames, self.flow_frames = (int(n) for n in reduce(np.array([self.frames, self.flow_frames])))
 
