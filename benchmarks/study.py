@@ -19,9 +19,10 @@ where p < 0.05 in that direction, else "no effect detected", with the smallest d
 detected (at 80% power).
 
 Resumable: each finished run writes ``<out>/<arm>/seed-<k>.json`` (with ``--commit``, committed to git at once
-with the summary, so an interrupted study keeps what it finished); a rerun skips finished runs, whatever their
-budget, and a killed run resumes from the newest checkpoint in ``<runs>/<arm>/seed-<k>``. The summary
-(``<out>/study.json``, ``<out>/study.md`` and ``<out>/study.png``) is rewritten after every run; ``--report`` only
+with the summary, so an interrupted study keeps what it finished). A rerun skips the runs finished on this world
+(its content hash), whatever their budget; it runs again, and replaces, those of another copy or none recorded; a
+killed run resumes from the newest checkpoint in ``<runs>/<arm>/seed-<k>``. The summary (``<out>/study.json``,
+``<out>/study.md`` and ``<out>/study.png``) is rewritten after every run; ``--report`` only
 rewrites it. Times are wall-clock and CPU seconds of this process and its data workers, per device: run it on an
 otherwise idle machine.
 """
@@ -196,11 +197,23 @@ def world_digest(data: Path) -> str:
     return folder_digest(data)
 
 
+def finished_run(result_file: Path, data: Path) -> dict | None:
+    """The run stored in ``result_file`` if it trained on the world at ``data`` (the same content hash), else None:
+    a run that recorded no hash, or another world's, cannot be matched with this world's runs, and is run again."""
+    if not result_file.is_file():
+        return None
+    run = json.loads(result_file.read_text())
+    return run if run.get("world", {}).get("sha256") == world_digest(data.resolve()) else None
+
+
 def run_arm(name: str, seed: int, args: argparse.Namespace) -> dict:
-    """Train and score one arm at one seed; the cached result when it already ran."""
+    """Train and score one arm at one seed; the stored result when it already ran on this world."""
     result_file = args.out / _slug(name) / f"seed-{seed}.json"
+    if (run := finished_run(result_file, args.data)) is not None:
+        return run
     if result_file.is_file():
-        return json.loads(result_file.read_text())
+        print(f"[study] {name}, seed {seed}: {result_file} trained on another copy of the world (or did not record "
+              "it): running it again on this one", flush=True)
     arm = ARMS[name]
     experiment = _data(arm.experiment(), root=str(args.data))
     experiment = replace_train(experiment, max_steps=args.steps, epochs=10_000, val_every=-1,
@@ -244,8 +257,14 @@ def commit(name: str, seed: int, out: Path) -> None:
     """Commit one finished run's result file with the summary it was just written into."""
     summary = [str(out / f"study.{ext}") for ext in ("json", "md", "png")]
     files = [str(out / _slug(name) / f"seed-{seed}.json"), *summary]
-    subprocess.run(["git", "add", "--", *files], check=True)
-    subprocess.run(["git", "commit", "-q", "-m", f"study: {name}, seed {seed}", "--", *files], check=True)
+    # Another git command in the same checkout (its index lock) may make one try fail: try again before giving up.
+    for attempt in range(5):
+        added = subprocess.run(["git", "add", "--", *files]).returncode == 0
+        message = f"study: {name}, seed {seed}"
+        if added and subprocess.run(["git", "commit", "-q", "-m", message, "--", *files]).returncode == 0:
+            return
+        time.sleep(2.0 * (attempt + 1))
+    raise RuntimeError(f"could not commit {files[0]} (git add or commit failed five times); it stays on disk")
 
 
 def _finished(out: Path) -> dict[str, list[dict]]:
@@ -436,10 +455,10 @@ def _plot(summaries: dict[str, dict], path: Path) -> None:
 
 def _todo(args: argparse.Namespace, running: set[tuple[str, int]]) -> list[tuple[str, int]]:
     """The runs still to start, seed-major: seeds 0 to ``--seeds`` - 1 of every arm (the same set for all, so that
-    every claim compares matched seeds)."""
+    every claim compares matched seeds) that have no result from this world (:func:`finished_run`)."""
     return [(name, seed) for seed in range(args.seeds) for name in args.arms
             if (name, seed) not in running
-            and not (args.out / _slug(name) / f"seed-{seed}.json").is_file()]  # fmt: skip
+            and finished_run(args.out / _slug(name) / f"seed-{seed}.json", args.data) is None]  # fmt: skip
 
 
 def _worker_threads(threads: int) -> None:

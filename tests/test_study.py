@@ -24,14 +24,20 @@ def study():
 
 
 def _args(out: Path) -> argparse.Namespace:
-    return argparse.Namespace(out=out, data=out / "world", arms=[BETTER, WORSE], seeds=2, commit=False, jobs=1)
+    world = out / "world"
+    world.mkdir(exist_ok=True)
+    (world / "labels.npz").write_bytes(b"\x00\x01")
+    return argparse.Namespace(out=out, data=world, arms=[BETTER, WORSE], seeds=2, commit=False, jobs=1)
 
 
-def _land(study, out: Path, arm: str, seed: int, miou: float) -> None:
+def _land(study, out: Path, arm: str, seed: int, miou: float, world: str | None = None) -> None:
+    """A finished run's result file, trained on the world of :func:`_args` unless ``world`` names another hash."""
     folder = out / study._slug(arm)
     folder.mkdir(parents=True, exist_ok=True)
+    sha256 = world or study.world_digest(_args(out).data.resolve())
     result = {"arm": arm, "seed": seed, "steps": 10, "miou": miou, "iou": 0.5, "rayiou": 0.1, "device": "CPU",
-              "train_seconds": 60.0, "train_cpu_seconds": 120.0, "eval_seconds": 1.0, "eval_cpu_seconds": 2.0}
+              "train_seconds": 60.0, "train_cpu_seconds": 120.0, "eval_seconds": 1.0, "eval_cpu_seconds": 2.0,
+              "world": {"sha256": sha256}}  # fmt: skip
     (folder / f"seed-{seed}.json").write_text(json.dumps(result))
 
 
@@ -80,6 +86,14 @@ def test_a_claim_needs_two_matched_seeds_and_one_budget(study):
     assert study.verdict(claim, runs)["status"] == "too few matched seeds (1)"
     assert study.verdict(claim, _runs([0.2, 0.3], [0.1, 0.2], steps=(10, 20)))["status"].startswith("budgets differ")
     assert study.verdict(claim, {BETTER: [], WORSE: []})["status"] == "not run"
+
+
+def test_a_run_on_another_copy_of_the_world_is_run_again(study, tmp_path):
+    _land(study, tmp_path, BETTER, 0, 0.2)
+    _land(study, tmp_path, WORSE, 0, 0.1, world="sha256:another")
+    _land(study, tmp_path, BETTER, 1, 0.2)
+    (tmp_path / study._slug(WORSE) / "seed-1.json").write_text(json.dumps({"seed": 1, "miou": 0.1}))  # no hash
+    assert study._todo(_args(tmp_path), set()) == [(WORSE, 0), (WORSE, 1)]
 
 
 def test_every_arm_runs_the_same_seeds(study, tmp_path):
