@@ -152,3 +152,43 @@ def test_a_worlds_digest_is_its_content_wherever_it_lies(tmp_path):
     (b / "gts" / "labels.npz").unlink()
     with pytest.raises(FileNotFoundError, match="labels.npz"):
         folder_digest(b)
+
+
+def test_the_committed_verdicts_recompute_from_their_seed_files():
+    """docs/results/study/study.json against its per-seed files, with scipy's Welch test rather than the study's:
+    each claim's seeds ran on its device and world copy for both arms, no other setting matches more seeds, and the
+    difference, interval, p-value and verdict come out the same."""
+    from scipy import stats
+
+    folder = REPO / "docs" / "results" / "study"
+    summary = json.loads((folder / "study.json").read_text())
+
+    def setting(run):
+        return run.get("device", "CPU"), (run.get("world") or {}).get("sha256")
+
+    def runs_of(arm):
+        slug = "".join(c if c.isalnum() or c == "_" else "-" for c in arm.replace(" ", "_")).strip("-")
+        runs = [json.loads(path.read_text()) for path in folder.glob(f"{slug}/seed-*.json")]
+        return {(setting(run), run["seed"]): run for run in runs}
+
+    tested = 0
+    for claim in summary["claims"]:
+        if "difference" not in claim:
+            continue
+        better, worse = runs_of(claim["better"]), runs_of(claim["worse"])
+        where = (claim["device"], claim["world"])
+        matched = {}
+        for key in better.keys() & worse.keys():
+            matched.setdefault(key[0], []).append(key[1])
+        assert sorted(matched[where]) == claim["seeds"], claim["text"]
+        assert all(len(seeds) <= len(claim["seeds"]) for seeds in matched.values()), claim["text"]
+        a = [100 * better[(where, s)]["miou"] for s in claim["seeds"]]
+        b = [100 * worse[(where, s)]["miou"] for s in claim["seeds"]]
+        test = stats.ttest_ind(a, b, equal_var=False)
+        assert claim["p"] == pytest.approx(test.pvalue, rel=1e-9, abs=1e-12), claim["text"]
+        assert claim["ci95"] == pytest.approx(list(test.confidence_interval(0.95)), rel=1e-9), claim["text"]
+        assert claim["difference"] == pytest.approx(sum(a) / len(a) - sum(b) / len(b)), claim["text"]
+        expected = ("holds" if test.statistic > 0 else "reversed") if test.pvalue < 0.05 else "no effect detected"
+        assert claim["status"] == expected, claim["text"]
+        tested += 1
+    assert tested >= 1
