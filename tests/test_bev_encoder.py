@@ -54,3 +54,17 @@ def test_paper_occupancy_head_parameters():
     head = OccupancyHead(OccupancyHeadConfig())
     # conv3x3 128->128 (+bias), Linear 128->256, Linear 256->288.
     assert count_parameters(head) == (128 * 128 * 9 + 128) + (128 * 256 + 256) + (256 * 288 + 288)
+
+
+def test_the_occupancy_logits_are_float32_under_bf16_autocast():
+    """bf16 logits tie where fp32's differ by less than 0.4%: the last projection runs in float32 under bf16 autocast
+    (and gives the same values as the head in float32, to the rounding of its bf16 hidden features)."""
+    torch.manual_seed(0)
+    head = OccupancyHead(OccupancyHeadConfig(in_channels=8, hidden_channels=16, height=4, num_classes=6)).eval()
+    bev = torch.randn(1, 8, 10, 12)
+    with torch.no_grad():
+        exact = head(bev)
+        with torch.autocast("cpu", dtype=torch.bfloat16):
+            mixed = head(bev)
+    assert mixed.dtype == torch.float32 and mixed.shape == exact.shape == (1, 6, 10, 12, 4)
+    assert torch.allclose(mixed, exact, atol=0.05) and not torch.equal(mixed, mixed.bfloat16().float())

@@ -193,3 +193,22 @@ def test_range_extension_zero_outside_the_bev_and_identity_in_the_lidar_frame():
     narrow = RangeExtension(RangeExtensionConfig((-25.0, -25.0, 25.0, 25.0), 1, 1, "lidar"), occ_grid)
     far = narrow(torch.ones(1, 1, 50, 50), narrow.sampling_grid(narrow.to_bev_frame(lidar2ego()[None], eye, eye)))
     assert far[0, 0, 0, 0] == 0 and far[0, 0, 100, 100] == 1
+
+
+@pytest.mark.parametrize("entry", ["flashocc_tiny", "da_occ_tiny", "daocc_tiny"])
+def test_the_plan_is_computed_in_full_precision_under_autocast(entry, synthetic_batch):
+    """Under bf16 autocast the rig's geometry would round ego coordinates to 8 significant bits (0.2 m at 50 m): the
+    plan a forward pass uses is the float32 one, bit for bit, whatever precision the network runs at."""
+    from occkit import zoo
+    from occkit.models.plans import plan_tensors
+
+    model = zoo.build(entry).eval()
+    batch = synthetic_batch(batch_size=1, num_cameras=6)
+    exact = plan_tensors(model.plan(batch))
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        used = plan_tensors(model.current_plan(batch))
+        rounded = plan_tensors(model.plan(batch))  # the plan computed under autocast, as before
+    assert used.keys() == exact.keys()
+    for path, tensor in exact.items():
+        assert used[path].dtype == tensor.dtype and torch.equal(used[path], tensor), path
+    assert any(not torch.equal(rounded[path], tensor) for path, tensor in exact.items())

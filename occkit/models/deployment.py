@@ -53,7 +53,7 @@ class DeployedNetwork(nn.Module):
         self.model = model
         self.deployment = model.deployment(batch)
         self.temporal = model.temporal
-        plan = model.plan(batch)
+        plan = model.full_precision_plan(batch)
         # Buffers, not persistent: they follow .to(device) but stay out of state dicts (derived, not learned). The
         # template keeps the plan's structure and sizes without its tensors, which live in the buffers only.
         self._plan_buffers = {}

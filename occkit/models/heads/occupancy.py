@@ -108,9 +108,21 @@ class OccupancyHead(nn.Module):
         return self.conv(bev).permute(0, 2, 3, 1)
 
     def logits(self, columns: Tensor) -> Tensor:
-        """Logits ``(B, K, X, Y, Z)`` of the per-cell features ``(B, X, Y, C_hidden)``."""
+        """Logits ``(B, K, X, Y, Z)`` of the per-cell features ``(B, X, Y, C_hidden)``.
+
+        Under bf16 autocast the last projection runs in float32: bf16 keeps 8 significant bits, so logits rounded to it
+        tie where fp32's differ by less than 0.4% and the arg-max flips there (fp16's 11 bits do not need it).
+        """
         batch, x, y, _ = columns.shape
-        logits = self.predictor(columns).view(batch, x, y, self.cfg.height, self.cfg.num_classes)  # (B, X, Y, Z, K)
+        hidden, last = self.predictor[:-1](columns), self.predictor[-1]
+        device = columns.device.type
+        bf16 = torch.amp.is_autocast_available(device) and torch.is_autocast_enabled(device)
+        if bf16 and torch.get_autocast_dtype(device) == torch.bfloat16:
+            with torch.autocast(device, enabled=False):
+                flat = last(hidden.float())
+        else:
+            flat = last(hidden)
+        logits = flat.view(batch, x, y, self.cfg.height, self.cfg.num_classes)  # (B, X, Y, Z, K)
         return logits.permute(0, 4, 1, 2, 3)
 
     def loss(
