@@ -1,12 +1,17 @@
 """Train the weights occkit ships for its CPU-sized entries, and write them with their cards into occkit/weights/.
 
     python scripts/train_shipped_weights.py --entry da_occ_tiny [--entry ...] [--runs runs/shipped]
-        [--world data/shipped-world] [--demo-data data/demo] [--epochs 30] [--write]
+        [--world data/shipped-world] [--demo-data data/demo] [--epochs 30 | --continue-epochs N] [--write]
 
 For each entry: the training world (:data:`TRAIN_WORLD`, a seed other than the demo's) is written if absent; the
 entry's CPU recipe (at ``--batch-size``, if given) trains on it for ``--epochs`` epochs, validating on its held-out
 scenes every 2 epochs and saving a checkpoint every 200 steps, and a rerun resumes from the newest checkpoint (a run
 may span sessions, and a GPU runs it with ``--device cuda``).
+
+``--continue-epochs N`` continues the shipped weights' run instead, for a run whose curve had not flattened by the
+end of its schedule: a new run (``<runs>/<entry>-continued``) starts from the shipped weights (kept in that folder
+with their card, ``base.safetensors`` and ``base.card.json``) with fresh AdamW moments and the recipe's warm-up and
+cosine schedule over N more epochs; its card adds the two runs up (steps, time, devices, both commands, one curve).
 
 With ``--write``, the last weights are rounded to half precision, scored on the demo world's held-out scenes (mIoU,
 IoU, RayIoU, per class) and written with their card (:mod:`occkit.shipped`): the world; the steps; the training
@@ -22,6 +27,7 @@ import argparse
 import dataclasses
 import json
 import shlex
+import shutil
 import sys
 from pathlib import Path
 
@@ -32,7 +38,7 @@ from occkit.demo import DEMO_WORLD
 from occkit.engine.evaluate import evaluation_dataset, load_trained, score_model
 from occkit.engine.train import train
 from occkit.experiment import replace_train
-from occkit.shipped import write_shipped
+from occkit.shipped import WeightsCard, weights_path, write_shipped
 from occkit.sim.generate import SimConfig, simulate_dataset
 
 #: The world the shipped weights train on: the demo world's size and image size with 16 scenes (4 held out), and a
@@ -135,19 +141,49 @@ def training_seconds(run: Path, batch_size: int) -> float:
     return seconds
 
 
-def reproduce_command(entry: str, experiment) -> str:
+def reproduce_command(entry: str, experiment, continued: bool = False) -> str:
     """The command that trains ``experiment``'s run again and writes the card: the settings that make the run (epochs,
-    batch size), none of the folders it happened to use (the defaults serve)."""
+    batch size; ``--continue-epochs`` for a continuation), none of the folders it happened to use (the defaults
+    serve)."""
     recipe = zoo.experiment(entry).train
-    args = ["--entry", entry, "--epochs", str(experiment.train.epochs)]
+    args = ["--entry", entry, "--continue-epochs" if continued else "--epochs", str(experiment.train.epochs)]
     if experiment.train.batch_size != recipe.batch_size:
         args += ["--batch-size", str(experiment.train.batch_size)]
     return "python scripts/train_shipped_weights.py " + shlex.join([*args, "--write"])
 
 
-def package(entry: str, run: Path, demo: Path, world: dict, device: str, trained_on: str, out: Path) -> None:
+def continuation_folder(runs: Path, entry: str) -> Path:
+    return runs / f"{entry}-continued"
+
+
+def start_continuation(entry: str, run: Path, weights: Path) -> WeightsCard:
+    """The card of the weights a continuation starts from: the shipped ones, copied with their card into ``run`` at
+    its start (``--write`` replaces the shipped files, and a resumed continuation must go on from the same start)."""
+    base_card, base_weights = run / "base.card.json", run / "base.safetensors"
+    if not base_card.is_file():
+        run.mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(weights_path(entry, weights), base_weights)
+        shutil.copyfile(weights / f"{entry}.card.json", base_card)
+    return WeightsCard(**json.loads(base_card.read_text()))
+
+
+def merged_card_fields(base: WeightsCard, run: Path, experiment, steps: int, trained_on: str) -> dict:
+    """The card fields of a continuation that went ``steps`` steps beyond ``base``: the two runs added up, its
+    validations after the base's on one curve (their steps counted from the start of the base run)."""
+    points = base.curve + [{**point, "step": base.steps + point["step"]} for point in curve(run)
+                           if point["step"] <= steps]  # fmt: skip
+    continued = (f"then {experiment.train.epochs} more epochs from those weights (a new warm-up and cosine schedule, "
+                 f"fresh optimizer moments; steps counted from there): {devices(run, steps, trained_on)}")  # fmt: skip
+    return {"steps": base.steps + steps, "curve": points, "device": f"{base.device}; {continued}",
+            "train_seconds": round(base.train_seconds + training_seconds(run, experiment.train.batch_size), 1),
+            "command": f"{base.command} && {reproduce_command(base.entry, experiment, continued=True)}"}  # fmt: skip
+
+
+def package(entry: str, run: Path, demo: Path, world: dict, device: str, trained_on: str, out: Path,
+            base: WeightsCard | None = None) -> None:  # fmt: skip
     """Score the run's newest checkpoint, rounded to half precision, on ``demo``'s held-out scenes (on ``device``)
-    and write it with its card into ``out`` (``trained_on`` names where the run trained)."""
+    and write it with its card into ``out`` (``trained_on`` names where the run trained; ``base``: the card of the
+    weights a continuation started from)."""
     checkpoint = sorted(run.glob("step-*.pt"))[-1]
     model, experiment = load_trained(checkpoint, device)
     with torch.no_grad():  # the card scores what is shipped: the weights at half precision
@@ -157,22 +193,25 @@ def package(entry: str, run: Path, demo: Path, world: dict, device: str, trained
     dataset = evaluation_dataset(experiment, demo, "val")
     scores = score_model(model, dataset)
     steps = int(checkpoint.stem.removeprefix("step-"))
-    points = [point for point in curve(run) if point["step"] <= steps]  # up to the checkpoint shipped
+    shipped_curve = [point for point in curve(run) if point["step"] <= steps]  # up to the checkpoint shipped
+    fields = {"steps": steps, "curve": shipped_curve,
+              "train_seconds": round(training_seconds(run, experiment.train.batch_size), 1),
+              "device": devices(run, steps, trained_on), "command": reproduce_command(entry, experiment)}  # fmt: skip
+    if base is not None:
+        fields = merged_card_fields(base, run, experiment, steps, trained_on)
+    points = fields["curve"]
     done, gain = converged(points)
     if len(points) < MIN_CURVE_POINTS:
         notes = f"not converged: {len(points)} held-out validations, too few to tell"
     else:
         notes = f"{'converged' if done else 'not converged'}: {100 * gain:+.2f} mIoU over the last fifth of the run"
-    card = write_shipped(model, experiment.architecture, {
-        "entry": entry, "world": {**world, "image_size": list(world["image_size"])}, "steps": steps,
-        "train_seconds": round(training_seconds(run, experiment.train.batch_size), 1),
-        "device": devices(run, steps, trained_on),
-        "command": reproduce_command(entry, experiment), "curve": points, "notes": notes,
+    written = write_shipped(model, experiment.architecture, {
+        "entry": entry, "world": {**world, "image_size": list(world["image_size"])}, **fields, "notes": notes,
         "scores": {"miou": scores["miou"], "iou": scores["iou"], "rayiou": scores.get("rayiou"),
                    "per_class": scores["per_class_iou"]},
     }, out)  # fmt: skip
-    print(f"{entry}: {steps} steps, demo held-out mIoU {100 * scores['miou']:.1f}, IoU {100 * scores['iou']:.1f}; "
-          f"{notes}; wrote {out / entry}.safetensors ({card.sha256[:12]})")  # fmt: skip
+    print(f"{entry}: {fields['steps']} steps, demo held-out mIoU {100 * scores['miou']:.1f}, "
+          f"IoU {100 * scores['iou']:.1f}; {notes}; wrote {out / entry}.safetensors ({written.sha256[:12]})")
 
 
 def main() -> int:
@@ -182,6 +221,8 @@ def main() -> int:
     parser.add_argument("--world", type=Path, default=Path("data/shipped-world"), help="training world")
     parser.add_argument("--demo-data", type=Path, default=Path("data/demo"), help="the demo world, scored on")
     parser.add_argument("--epochs", type=int, default=30, help="epochs of the training world (default 30)")
+    parser.add_argument("--continue-epochs", type=int, default=0, metavar="N",
+                        help="continue the shipped weights' run for N more epochs (a new schedule; see above)")
     parser.add_argument("--device", default="cpu", help="cpu or cuda (default cpu)")
     parser.add_argument("--batch-size", type=int, default=None,
                         help="samples per step (default: the entry's, 1; a GPU trains 4 in the time of 1)")  # fmt: skip
@@ -200,16 +241,23 @@ def main() -> int:
     trained_on = (f"cpu ({threads} thread{'' if threads == 1 else 's'})" if args.device == "cpu"
                   else torch.cuda.get_device_name())
     for entry in args.entry or ENTRIES:
+        run, base = args.runs / entry, None
+        if args.continue_epochs:
+            run = continuation_folder(args.runs, entry)
+            base = start_continuation(entry, run, args.out)
         if not args.no_train:
-            experiment = run_experiment(entry, args.world, args.epochs, args.device, args.workers, args.batch_size)
-            record_session(args.runs / entry, trained_on)
+            epochs = args.continue_epochs or args.epochs
+            experiment = run_experiment(entry, args.world, epochs, args.device, args.workers, args.batch_size)
+            if base is not None:
+                experiment = replace_train(experiment, load_from=str(run / "base.safetensors"))
+            record_session(run, trained_on)
             # A run may move between machines (a GPU, then a CPU): the world is the same TRAIN_WORLD in another folder.
-            run = train(experiment, args.runs / entry, resume="auto", allow_changes=("train.workers", "data.root"),
-                        device=args.device)  # fmt: skip
-            print(f"{entry}: trained to step {run.steps}", flush=True)
+            result = train(experiment, run, resume="auto", allow_changes=("train.workers", "data.root"),
+                           device=args.device)  # fmt: skip
+            print(f"{entry}: trained to step {result.steps}", flush=True)
         if args.write:
             ensure_world(args.demo_data, DEMO_WORLD)
-            package(entry, args.runs / entry, args.demo_data, TRAIN_WORLD, args.device, trained_on, args.out)
+            package(entry, run, args.demo_data, TRAIN_WORLD, args.device, trained_on, args.out, base)
     return 0
 
 

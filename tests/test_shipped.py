@@ -169,3 +169,33 @@ def test_a_card_names_every_device_a_run_trained_on(tmp_path):
     assert script.devices(tmp_path, 3000, "?") == ("NVIDIA H100 (steps 0-2304), cpu (1 threads) (steps 2304-2600), "
                                                    "cpu (1 threads), resumed with fresh optimizer moments "
                                                    "(steps 2600-3000)")  # fmt: skip
+
+
+def test_a_continued_run_adds_up_with_the_run_it_continues(tmp_path):
+    """--continue-epochs: the shipped weights and card are kept in the new run's folder at its start, and the new card
+    adds the two runs up: steps, time, devices, both commands, and one curve with the continuation's validations
+    counted from the start of the first run."""
+    from occkit.experiment import replace_train
+
+
+    script = _training_script()
+    original = shipped.card(ENTRY)
+    run = script.continuation_folder(tmp_path, ENTRY)
+    base = script.start_continuation(ENTRY, run, shipped.weights_folder())
+    assert base == original and (run / "base.safetensors").is_file()
+    assert script.start_continuation(ENTRY, run, tmp_path / "elsewhere") == base  # a resumed start keeps its base
+    (run / "val.jsonl").write_text("".join(json.dumps({"step": s, "miou": m, "iou": 0.6}) + "\n"
+                                           for s, m in ((100, 0.30), (200, 0.31))))  # fmt: skip
+    (run / "log.jsonl").write_text(json.dumps({"step": 200, "samples_per_s": 2.0}) + "\n")
+    script.record_session(run, "cpu (2 threads)")
+    experiment = replace_train(zoo.experiment(ENTRY), epochs=6, batch_size=4)
+    fields = script.merged_card_fields(base, run, experiment, 200, "?")
+    assert fields["steps"] == original.steps + 200
+    assert fields["curve"][: len(original.curve)] == original.curve
+    assert [p["step"] for p in fields["curve"][len(original.curve):]] == [original.steps + 100, original.steps + 200]
+    assert fields["train_seconds"] == pytest.approx(original.train_seconds + 200 * 4 / 2.0, abs=0.1)
+    assert fields["device"] == (f"{original.device}; then 6 more epochs from those weights (a new warm-up and cosine "
+                                "schedule, fresh optimizer moments; steps counted from there): cpu (2 threads) "
+                                "(steps 0-200)")  # fmt: skip
+    continuation = f"python scripts/train_shipped_weights.py --entry {ENTRY} --continue-epochs 6 --batch-size 4 --write"
+    assert fields["command"] == f"{original.command} && {continuation}"
