@@ -258,9 +258,9 @@ def commit(name: str, seed: int, out: Path) -> None:
     summary = [str(out / f"study.{ext}") for ext in ("json", "md", "png")]
     files = [str(out / _slug(name) / f"seed-{seed}.json"), *summary]
     # Another git command in the same checkout (its index lock) may make one try fail: try again before giving up.
+    message = f"study: {name}, seed {seed}"
     for attempt in range(5):
         added = subprocess.run(["git", "add", "--", *files]).returncode == 0
-        message = f"study: {name}, seed {seed}"
         if added and subprocess.run(["git", "commit", "-q", "-m", message, "--", *files]).returncode == 0:
             return
         time.sleep(2.0 * (attempt + 1))

@@ -193,11 +193,11 @@ def package(entry: str, run: Path, demo: Path, world: dict, device: str, trained
     dataset = evaluation_dataset(experiment, demo, "val")
     scores = score_model(model, dataset)
     steps = int(checkpoint.stem.removeprefix("step-"))
-    shipped_curve = [point for point in curve(run) if point["step"] <= steps]  # up to the checkpoint shipped
-    fields = {"steps": steps, "curve": shipped_curve,
-              "train_seconds": round(training_seconds(run, experiment.train.batch_size), 1),
-              "device": devices(run, steps, trained_on), "command": reproduce_command(entry, experiment)}  # fmt: skip
-    if base is not None:
+    if base is None:
+        fields = {"steps": steps, "curve": [point for point in curve(run) if point["step"] <= steps],  # as shipped
+                  "train_seconds": round(training_seconds(run, experiment.train.batch_size), 1),
+                  "device": devices(run, steps, trained_on), "command": reproduce_command(entry, experiment)}
+    else:
         fields = merged_card_fields(base, run, experiment, steps, trained_on)
     points = fields["curve"]
     done, gain = converged(points)

@@ -154,7 +154,7 @@ def test_a_worlds_digest_is_its_content_wherever_it_lies(tmp_path):
         folder_digest(b)
 
 
-def test_the_committed_verdicts_recompute_from_their_seed_files():
+def test_the_committed_verdicts_recompute_from_their_seed_files(study):
     """docs/results/study/study.json against its per-seed files, with scipy's Welch test rather than the study's:
     each claim's seeds ran on its device and world copy for both arms, no other setting matches more seeds, and the
     difference, interval, p-value and verdict come out the same."""
@@ -167,8 +167,7 @@ def test_the_committed_verdicts_recompute_from_their_seed_files():
         return run.get("device", "CPU"), (run.get("world") or {}).get("sha256")
 
     def runs_of(arm):
-        slug = "".join(c if c.isalnum() or c == "_" else "-" for c in arm.replace(" ", "_")).strip("-")
-        runs = [json.loads(path.read_text()) for path in folder.glob(f"{slug}/seed-*.json")]
+        runs = [json.loads(path.read_text()) for path in folder.glob(f"{study._slug(arm)}/seed-*.json")]
         return {(setting(run), run["seed"]): run for run in runs}
 
     tested = 0
