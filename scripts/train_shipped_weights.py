@@ -9,9 +9,10 @@ scenes every 2 epochs and saving a checkpoint every 200 steps, and a rerun resum
 may span sessions, and a GPU runs it with ``--device cuda``).
 
 ``--continue-epochs N`` continues the shipped weights' run instead, for a run whose curve had not flattened by the
-end of its schedule: a new run (``<runs>/<entry>-continued``) starts from the shipped weights (kept in that folder
-with their card, ``base.safetensors`` and ``base.card.json``) with fresh AdamW moments and the recipe's warm-up and
-cosine schedule over N more epochs; its card adds the two runs up (steps, time, devices, both commands, one curve).
+end of its schedule: a new run (``<runs>/<entry>-from-<steps>``, named after the shipped weights' steps) starts from
+the shipped weights (kept in that folder with their card, ``base.safetensors`` and ``base.card.json``) with fresh AdamW
+moments and the recipe's warm-up and cosine schedule over N more epochs; its card adds the runs up (steps, time,
+devices, every command, one curve). A continuation may itself be continued: each starts a folder of its own.
 
 With ``--write``, the last weights are rounded to half precision, scored on the demo world's held-out scenes (mIoU,
 IoU, RayIoU, per class) and written with their card (:mod:`occkit.shipped`): the world; the steps; the training
@@ -38,7 +39,7 @@ from occkit.demo import DEMO_WORLD
 from occkit.engine.evaluate import evaluation_dataset, load_trained, score_model
 from occkit.engine.train import train
 from occkit.experiment import replace_train
-from occkit.shipped import WeightsCard, weights_path, write_shipped
+from occkit.shipped import WeightsCard, card, weights_path, write_shipped
 from occkit.sim.generate import SimConfig, simulate_dataset
 
 #: The world the shipped weights train on: the demo world's size and image size with 16 scenes (4 held out), and a
@@ -152,8 +153,10 @@ def reproduce_command(entry: str, experiment, continued: bool = False) -> str:
     return "python scripts/train_shipped_weights.py " + shlex.join([*args, "--write"])
 
 
-def continuation_folder(runs: Path, entry: str) -> Path:
-    return runs / f"{entry}-continued"
+def continuation_folder(runs: Path, entry: str, weights: Path) -> Path:
+    """The run folder of a continuation of ``entry``'s weights in ``weights``: named after the steps they were trained
+    for, so that the continuation of a continuation neither resumes nor overwrites the one before it."""
+    return runs / f"{entry}-from-{card(entry, weights).steps}"
 
 
 def start_continuation(entry: str, run: Path, weights: Path) -> WeightsCard:
@@ -164,7 +167,7 @@ def start_continuation(entry: str, run: Path, weights: Path) -> WeightsCard:
         run.mkdir(parents=True, exist_ok=True)
         shutil.copyfile(weights_path(entry, weights), base_weights)
         shutil.copyfile(weights / f"{entry}.card.json", base_card)
-    return WeightsCard(**json.loads(base_card.read_text()))
+    return card("base", run)
 
 
 def merged_card_fields(base: WeightsCard, run: Path, experiment, steps: int, trained_on: str) -> dict:
@@ -243,7 +246,9 @@ def main() -> int:
     for entry in args.entry or ENTRIES:
         run, base = args.runs / entry, None
         if args.continue_epochs:
-            run = continuation_folder(args.runs, entry)
+            run = continuation_folder(args.runs, entry, args.out)
+            if args.no_train and not run.is_dir():
+                parser.error(f"no continuation of {entry}'s shipped weights in {run} to write")
             base = start_continuation(entry, run, args.out)
         if not args.no_train:
             epochs = args.continue_epochs or args.epochs

@@ -180,7 +180,8 @@ def test_a_continued_run_adds_up_with_the_run_it_continues(tmp_path):
 
     script = _training_script()
     original = shipped.card(ENTRY)
-    run = script.continuation_folder(tmp_path, ENTRY)
+    run = script.continuation_folder(tmp_path, ENTRY, shipped.weights_folder())
+    assert run == tmp_path / f"{ENTRY}-from-{original.steps}"  # a continuation of it gets a folder of its own
     base = script.start_continuation(ENTRY, run, shipped.weights_folder())
     assert base == original and (run / "base.safetensors").is_file()
     assert script.start_continuation(ENTRY, run, tmp_path / "elsewhere") == base  # a resumed start keeps its base
