@@ -24,6 +24,7 @@ from tqdm import tqdm
 
 from occkit import zoo
 from occkit.data.collate import collate
+from occkit.engine.checkpoint import latest_checkpoint
 from occkit.engine.evaluate import evaluation_dataset, load_trained, score_model
 from occkit.engine.train import train
 from occkit.errors import UsageError
@@ -273,8 +274,8 @@ def _train_score_report(out: Path, data: Path, models: dict[str, int], started: 
         if name not in shipped_entries():
             continue
         described = card(name)
-        _say(f"scoring the shipped {name} ({described.steps} steps on {described.device}) on {len(datasets[name])} "
-             "held-out frames")  # fmt: skip
+        _say(f"scoring the shipped {name} ({described.steps} steps, card {described.sha256[:12]}) on "
+             f"{len(datasets[name])} held-out frames")  # fmt: skip
         model = zoo.build(name, weights=SYNTHETIC).eval()
         scores = _score(name, model, datasets[name], experiment, workers)
         shipped[name] = {**scores, "trained": f"{described.steps} steps, card {described.sha256[:12]}"}
@@ -284,11 +285,15 @@ def _train_score_report(out: Path, data: Path, models: dict[str, int], started: 
                                    checkpoint_every=100)  # fmt: skip
         if workers == 0:
             experiment = replace_train(experiment, workers=0)
-        _say(f"training {name} from random weights for {steps} steps ({zoo.description(name)})")
+        newest = latest_checkpoint(out / name)
+        if newest is not None and int(newest.stem.removeprefix("step-")) >= steps:
+            _say(f"reusing {name}'s finished {steps}-step run in {out / name}")
+        else:
+            _say(f"training {name} from random weights for {steps} steps ({zoo.description(name)})")
         # A rerun with other --steps continues the earlier run: only the step count may differ.
         run = train(experiment, out / name, resume="auto", allow_changes=("train.max_steps", "train.workers"))
         train_seconds = _training_time(out / name, run.seconds)
-        model, experiment = load_trained(sorted((out / name).glob("step-*.pt"))[-1])
+        model, experiment = load_trained(latest_checkpoint(out / name))
         scores = _score(name, model, datasets[name], experiment, workers)
         trained[name] = {**scores, "steps": run.steps, "train_seconds": train_seconds, "loss": _loss_ends(out / name)}
         from_scratch[name] = model
