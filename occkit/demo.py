@@ -24,7 +24,7 @@ from tqdm import tqdm
 
 from occkit import zoo
 from occkit.data.collate import collate
-from occkit.engine.checkpoint import latest_checkpoint
+from occkit.engine.checkpoint import checkpoint_step, latest_checkpoint
 from occkit.engine.evaluate import evaluation_dataset, load_trained, score_model
 from occkit.engine.train import train
 from occkit.errors import UsageError
@@ -286,7 +286,7 @@ def _train_score_report(out: Path, data: Path, models: dict[str, int], started: 
         if workers == 0:
             experiment = replace_train(experiment, workers=0)
         newest = latest_checkpoint(out / name)
-        if newest is not None and int(newest.stem.removeprefix("step-")) >= steps:
+        if newest is not None and checkpoint_step(newest) >= steps:
             _say(f"reusing {name}'s finished {steps}-step run in {out / name}")
         else:
             _say(f"training {name} from random weights for {steps} steps ({zoo.description(name)})")

@@ -36,6 +36,7 @@ import torch
 
 from occkit import zoo
 from occkit.demo import DEMO_WORLD
+from occkit.engine.checkpoint import checkpoint_step
 from occkit.engine.evaluate import evaluation_dataset, load_trained, score_model
 from occkit.engine.train import train
 from occkit.experiment import replace_train
@@ -58,10 +59,12 @@ SESSIONS = "sessions.jsonl"
 def record_session(run: Path, device: str) -> None:
     """Append this session (the step the trainer resumes from, which is its newest checkpoint's, and ``device``)."""
     checkpoints = sorted(run.glob("step-*.pt"))
-    start = int(checkpoints[-1].stem.removeprefix("step-")) if checkpoints else 0
+    start = checkpoint_step(checkpoints[-1]) if checkpoints else 0
     record = {"from_step": start, "device": device}
-    if checkpoints and torch.load(checkpoints[-1], map_location="cpu", weights_only=False)["optimizer"] is None:
-        record["fresh_optimizer"] = True  # the checkpoint travelled without AdamW's moments
+    # Mapped, not read: only whether the optimizer's moments travelled with the checkpoint matters here.
+    payload = torch.load(checkpoints[-1], map_location="cpu", weights_only=False, mmap=True) if checkpoints else None
+    if payload is not None and payload["optimizer"] is None:  # the checkpoint travelled without AdamW's moments
+        record["fresh_optimizer"] = True
     run.mkdir(parents=True, exist_ok=True)
     with open(run / SESSIONS, "a") as handle:
         handle.write(json.dumps(record) + "\n")
@@ -195,7 +198,7 @@ def package(entry: str, run: Path, demo: Path, world: dict, device: str, trained
                 tensor.copy_(tensor.half().float())
     dataset = evaluation_dataset(experiment, demo, "val")
     scores = score_model(model, dataset)
-    steps = int(checkpoint.stem.removeprefix("step-"))
+    steps = checkpoint_step(checkpoint)
     if base is None:
         fields = {"steps": steps, "curve": [point for point in curve(run) if point["step"] <= steps],  # as shipped
                   "train_seconds": round(training_seconds(run, experiment.train.batch_size), 1),

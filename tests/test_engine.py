@@ -37,7 +37,7 @@ import torch
 from conftest import torch_threads
 
 from occkit.classes import DETECTION_CLASSES
-from occkit.engine.checkpoint import atomic_save, latest_checkpoint, load_checkpoint, save_checkpoint
+from occkit.engine.checkpoint import atomic_save, checkpoint_step, latest_checkpoint, load_checkpoint, save_checkpoint
 from occkit.sim.generate import SimConfig, simulate_dataset
 from occkit.zoo import load_experiment
 
@@ -281,6 +281,13 @@ def test_atomic_save_failing_midway_keeps_the_previous_file(tmp_path, monkeypatc
         load_checkpoint(target)
 
 
+def test_checkpoint_step_reads_the_name_and_refuses_other_files():
+    assert checkpoint_step("runs/a/step-00000144.pt") == 144
+    for name in ("best.pt", "step-.pt", "step-12a.pt"):
+        with pytest.raises(ValueError, match=f"{re.escape(name)} is not named like a checkpoint"):
+            checkpoint_step(name)
+
+
 def test_killed_folders_never_hold_a_truncated_checkpoint(resumed):
     runs = resumed
     # Temporary files may remain only where a kill landed mid-write, and never under a checkpoint's name.
@@ -291,7 +298,7 @@ def test_killed_folders_never_hold_a_truncated_checkpoint(resumed):
         pointed = latest_checkpoint(folder)
         assert pointed is not None, f"{folder.name}: killed before its first checkpoint"
         payload = load_checkpoint(pointed)
-        assert payload["step"] == json.loads((folder / "last.json").read_text())["step"]
+        assert payload["step"] == json.loads((folder / "last.json").read_text())["step"] == checkpoint_step(pointed)
         checkpoints = sorted(folder.glob("*.pt"))
         assert pointed in checkpoints
         for path in checkpoints:

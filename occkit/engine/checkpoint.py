@@ -112,6 +112,15 @@ def save_checkpoint(folder: str | Path, payload: dict[str, Any], step: int, keep
     return path
 
 
+def checkpoint_step(path: str | Path) -> int:
+    """The training step a ``step-XXXXXXXX.pt`` checkpoint was written at, read from its name."""
+    name = Path(path).stem
+    digits = name.removeprefix("step-")
+    if name == digits or not digits.isdigit():
+        raise ValueError(f"{path} is not named like a checkpoint (step-XXXXXXXX.pt)")
+    return int(digits)
+
+
 def latest_checkpoint(folder: str | Path) -> Path | None:
     """The checkpoint ``last.json`` names, or None for a folder without one."""
     pointer = Path(folder) / "last.json"
