@@ -8,6 +8,7 @@ trained files and their scores are checked by test_shipped_scores.py.
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 
 import pytest
@@ -151,6 +152,26 @@ def test_a_run_converges_only_on_a_plateau_of_enough_validations():
     rising, gain = script.converged(points([0.10, 0.15, 0.20, 0.25, 0.30]))
     assert plateau and not rising and gain == pytest.approx(0.05)
     assert script.converged(points([0.10, 0.09, 0.08])) == (False, pytest.approx(float("nan"), nan_ok=True))
+
+
+def test_a_card_says_where_it_stands_against_its_target(tmp_path):
+    script = _training_script()
+    curve = [{"step": 100 * (i + 1), "miou": v, "iou": 0.6} for i, v in enumerate([0.10, 0.15, 0.16, 0.162, 0.163])]
+    objects = {"car": 0.2, "bus": 0.3, "truck": 0.01, "pedestrian": 0.0}
+    below = script.card_notes("da_occ_tiny", curve, {"miou": 0.239, "per_class": objects})
+    assert below == ("converged: +0.10 mIoU over the last fifth of the run; 23.9 mIoU on the demo world's held-out "
+                     "frames, below its target of 25; 0 IoU on pedestrian")  # fmt: skip
+    met = script.card_notes("flashocc_tiny", curve[:3], {"miou": 0.25, "per_class": {**objects, "pedestrian": 0.02}})
+    assert met == ("not converged: 3 held-out validations, too few to tell; 25.0 mIoU on the demo world's held-out "
+                   "frames, meeting its target of 20")  # fmt: skip
+    # --refresh-notes rewrites only the notes: the weights and the hash the card holds of them stay.
+    for name in ("flashocc_tiny.card.json", "flashocc_tiny.safetensors"):
+        shutil.copy(shipped.weights_folder() / name, tmp_path / name)
+    before = json.loads((tmp_path / "flashocc_tiny.card.json").read_text())
+    written = script.refresh_notes("flashocc_tiny", tmp_path)
+    after = json.loads((tmp_path / "flashocc_tiny.card.json").read_text())
+    assert after == {**before, "notes": written} and shipped.card("flashocc_tiny", tmp_path).notes == written
+    assert shipped.weights_path("flashocc_tiny", tmp_path).is_file()
 
 
 def test_a_card_names_every_device_a_run_trained_on(tmp_path):
