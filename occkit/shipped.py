@@ -26,7 +26,7 @@ from typing import Any
 from occkit.config import ConfigError
 
 __all__ = ["SYNTHETIC", "WeightsCard", "weights_folder", "shipped_entries", "card", "weights_path", "load_shipped",
-           "write_shipped"]  # fmt: skip
+           "write_shipped", "write_card"]  # fmt: skip
 
 #: The name that stands for the shipped weights wherever a weights file is asked for (``--weights synthetic``).
 SYNTHETIC = "synthetic"
@@ -157,5 +157,12 @@ def write_shipped(model: Any, architecture: str, card_fields: dict[str, Any], fo
     folder.mkdir(parents=True, exist_ok=True)
     write_atomic(folder / f"{entry}.safetensors", data)
     written = WeightsCard(**{"occkit_version": __version__, **card_fields, "sha256": hashlib.sha256(data).hexdigest()})
-    write_atomic(folder / f"{entry}.card.json", json.dumps(dataclasses.asdict(written), indent=1) + "\n")
+    write_card(written, folder)
     return written
+
+
+def write_card(written: WeightsCard, folder: Path) -> None:
+    """Write ``written`` as ``folder/ENTRY.card.json``, atomically."""
+    from occkit.outputs import write_atomic
+
+    write_atomic(folder / f"{written.entry}.card.json", json.dumps(dataclasses.asdict(written), indent=1) + "\n")

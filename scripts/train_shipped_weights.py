@@ -42,8 +42,7 @@ from occkit.engine.checkpoint import checkpoint_step
 from occkit.engine.evaluate import evaluation_dataset, load_trained, score_model
 from occkit.engine.train import train
 from occkit.experiment import replace_train
-from occkit.outputs import write_atomic
-from occkit.shipped import WeightsCard, card, weights_path, write_shipped
+from occkit.shipped import WeightsCard, card, weights_path, write_card, write_shipped
 from occkit.sim.generate import SimConfig, simulate_dataset
 
 #: The world the shipped weights train on: the demo world's size and image size with 16 scenes (4 held out), and a
@@ -163,11 +162,10 @@ def card_notes(entry: str, points: list[dict[str, float]], scores: dict) -> str:
 def refresh_notes(entry: str, folder: Path) -> str:
     """Rewrite the notes of ``entry``'s card in ``folder`` from the card's own curve and scores (after
     :func:`card_notes` changed); the weights, and the hash the card holds of them, stay as they are."""
-    path = folder / f"{entry}.card.json"
-    fields = json.loads(path.read_text())
-    fields["notes"] = card_notes(entry, fields["curve"], fields["scores"])
-    write_atomic(path, json.dumps(fields, indent=1) + "\n")
-    return fields["notes"]
+    shipped = card(entry, folder)
+    notes = card_notes(entry, shipped.curve, shipped.scores)
+    write_card(dataclasses.replace(shipped, notes=notes), folder)
+    return notes
 
 
 def training_seconds(run: Path, batch_size: int) -> float:
