@@ -176,9 +176,10 @@ def main() -> None:
     reports: dict[str, dict] = {}
     baseline = None
     for name in MODELS:
-        checkpoint = args.runs / _slug(name) / "seed-0" / "step-00000500.pt"
+        checkpoint = args.runs / _slug(name) / "500-steps" / "seed-0" / "step-00000500.pt"
         if not checkpoint.is_file():
-            sys.exit(f"{checkpoint} not found: train the arm first (python benchmarks/study.py --arms '{name}')")
+            sys.exit(f"{checkpoint} not found: train the arm first (python benchmarks/study.py --arms '{name}' "
+                     "--steps 500)")  # fmt: skip
         out = args.out / _slug(name)
         print(f"[robustness] {name}: {checkpoint} -> {out}", flush=True)
         began = time.perf_counter()

@@ -11,6 +11,9 @@ import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 BETTER, WORSE = "da_occ_tiny", "flashocc_tiny"  # the arms of the claim "DA-Occ beats FlashOcc at matched size"
+#: Every object class at 5% IoU: a run that has learned objects.
+SCORES = {name: 0.05 for name in ("car", "truck", "construction_vehicle", "bus", "trailer", "barrier", "motorcycle",
+                                  "bicycle", "pedestrian", "traffic_cone")}  # fmt: skip
 
 
 @pytest.fixture(scope="module")
@@ -27,29 +30,49 @@ def _args(out: Path) -> argparse.Namespace:
     world = out / "world"
     world.mkdir(exist_ok=True)
     (world / "labels.npz").write_bytes(b"\x00\x01")
-    return argparse.Namespace(out=out, data=world, arms=[BETTER, WORSE], seeds=2, commit=False, jobs=1)
+    # The claim's budget only: da_occ_tiny also runs at the budget of the DAC claims.
+    return argparse.Namespace(out=out, data=world, arms=[BETTER, WORSE], steps=[STEPS], seeds=2, commit=False,
+                              jobs=1)  # fmt: skip
 
 
-def _land(study, out: Path, arm: str, seed: int, miou: float, world: str | None = None) -> None:
+#: The budget of the claim "DA-Occ beats FlashOcc at matched size" (benchmarks/study.py's BASELINE_STEPS).
+STEPS = 6000
+
+
+def _land(study, out: Path, arm: str, seed: int, miou: float, world: str | None = None, steps: int = STEPS) -> None:
     """A finished run's result file, trained on the world of :func:`_args` unless ``world`` names another hash."""
-    folder = out / study._slug(arm)
-    folder.mkdir(parents=True, exist_ok=True)
+    path = study.result_path(out, arm, steps, seed)
+    path.parent.mkdir(parents=True, exist_ok=True)
     sha256 = world or study.world_digest(_args(out).data.resolve())
-    result = {"arm": arm, "seed": seed, "steps": 10, "miou": miou, "iou": 0.5, "rayiou": 0.1, "device": "CPU",
-              "train_seconds": 60.0, "train_cpu_seconds": 120.0, "eval_seconds": 1.0, "eval_cpu_seconds": 2.0,
-              "world": {"sha256": sha256}}  # fmt: skip
-    (folder / f"seed-{seed}.json").write_text(json.dumps(result))
+    result = {"arm": arm, "seed": seed, "steps": steps, "miou": miou, "iou": 0.5, "rayiou": 0.1, "device": "CPU",
+              "per_class_iou": SCORES, "train_seconds": 60.0, "train_cpu_seconds": 120.0, "eval_seconds": 1.0,
+              "eval_cpu_seconds": 2.0, "world": {"sha256": sha256}}  # fmt: skip
+    path.write_text(json.dumps(result))
+
+
+def test_the_claims_budgets(study):
+    claim = next(c for c in study.CLAIMS if (c.better, c.worse) == (BETTER, WORSE))
+    assert claim.steps == STEPS == study.BASELINE_STEPS
+    budgets = study.budgets()
+    assert len(budgets) == len(set(budgets)) and [s for _, s in budgets] == sorted(s for _, s in budgets)
+    assert (BETTER, study.CAMERA_STEPS) in budgets and (BETTER, STEPS) in budgets  # the DAC claims and this one
+    assert (WORSE, study.CAMERA_STEPS) not in budgets
 
 
 def test_a_seed_that_landed_first_is_not_run_again(study, tmp_path):
     _land(study, tmp_path, BETTER, 1, 0.2)  # seed 1 finished before seed 0 (runs in parallel)
-    assert study._todo(_args(tmp_path), set()) == [(BETTER, 0), (WORSE, 0), (WORSE, 1)]
-    assert study._todo(_args(tmp_path), {(BETTER, 0), (WORSE, 0)}) == [(WORSE, 1)]
+    # Seed-major, in the order of ARMS (flashocc_tiny first).
+    assert study._todo(_args(tmp_path), set()) == [(WORSE, STEPS, 0), (BETTER, STEPS, 0), (WORSE, STEPS, 1)]
+    assert study._todo(_args(tmp_path), {(BETTER, STEPS, 0), (WORSE, STEPS, 0)}) == [(WORSE, STEPS, 1)]
+    args = _args(tmp_path)
+    args.steps = None  # every budget: da_occ_tiny's runs for the DAC claims come first
+    assert study._todo(args, set())[:2] == [(BETTER, study.CAMERA_STEPS, 0), (WORSE, STEPS, 0)]
 
 
-def _runs(better: list[float], worse: list[float], steps: tuple[int, int] = (10, 10)) -> dict[str, list[dict]]:
+def _runs(better: list[float], worse: list[float], steps: tuple[int, int] = (STEPS, STEPS)) -> dict[str, list[dict]]:
     def arm(values, budget):
-        return [{"seed": seed, "steps": budget, "miou": value, "iou": 0.5} for seed, value in enumerate(values)]
+        return [{"seed": seed, "steps": budget, "miou": value, "iou": 0.5, "per_class_iou": SCORES}
+                for seed, value in enumerate(values)]  # fmt: skip
 
     return {BETTER: arm(better, steps[0]), WORSE: arm(worse, steps[1])}
 
@@ -82,18 +105,20 @@ def test_a_claim_needs_two_matched_seeds_and_one_budget(study):
     claim = next(c for c in study.CLAIMS if (c.better, c.worse) == (BETTER, WORSE))
     runs = _runs([0.2, 0.3], [0.1])
     assert study.verdict(claim, runs)["status"] == "too few matched seeds (1)"
-    runs[WORSE].append({"seed": 7, "steps": 10, "miou": 0.1, "iou": 0.5})  # a seed the other arm lacks
+    runs[WORSE].append({"seed": 7, "steps": STEPS, "miou": 0.1, "iou": 0.5})  # a seed the other arm lacks
     assert study.verdict(claim, runs)["status"] == "too few matched seeds (1)"
-    assert study.verdict(claim, _runs([0.2, 0.3], [0.1, 0.2], steps=(10, 20)))["status"].startswith("budgets differ")
-    assert study.verdict(claim, {BETTER: [], WORSE: []})["status"] == "not run"
+    # Runs at another budget are not this claim's.
+    assert study.verdict(claim, _runs([0.2, 0.3], [0.1, 0.2], steps=(STEPS, 10)))["status"] == "not run at 6000 steps"
+    assert study.verdict(claim, {BETTER: [], WORSE: []})["status"] == "not run at 6000 steps"
+    assert study.verdict(claim, _runs([0.2, 0.3], [0.1, 0.2]))["objects"] == pytest.approx(5.0)
 
 
 def test_a_run_on_another_copy_of_the_world_is_run_again(study, tmp_path):
     _land(study, tmp_path, BETTER, 0, 0.2)
     _land(study, tmp_path, WORSE, 0, 0.1, world="sha256:another")
     _land(study, tmp_path, BETTER, 1, 0.2)
-    (tmp_path / study._slug(WORSE) / "seed-1.json").write_text(json.dumps({"seed": 1, "miou": 0.1}))  # no hash
-    assert study._todo(_args(tmp_path), set()) == [(WORSE, 0), (WORSE, 1)]
+    study.result_path(tmp_path, WORSE, STEPS, 1).write_text(json.dumps({"seed": 1, "miou": 0.1}))  # no hash
+    assert study._todo(_args(tmp_path), set()) == [(WORSE, STEPS, 0), (WORSE, STEPS, 1)]
 
 
 def test_every_arm_runs_the_same_seeds(study, tmp_path):
@@ -101,20 +126,20 @@ def test_every_arm_runs_the_same_seeds(study, tmp_path):
         _land(study, tmp_path, BETTER, seed, miou)
     args = _args(tmp_path)
     args.seeds = 3
-    assert study._todo(args, set()) == [(WORSE, 0), (WORSE, 1), (BETTER, 2), (WORSE, 2)]
+    assert study._todo(args, set()) == [(WORSE, STEPS, 0), (WORSE, STEPS, 1), (WORSE, STEPS, 2), (BETTER, STEPS, 2)]
 
 
 def test_run_all_runs_what_is_missing_and_rewrites_the_summary(study, tmp_path, monkeypatch):
     ran = []
 
-    def fake_run(name, seed, args):
-        ran.append((name, seed))
-        _land(study, args.out, name, seed, 0.2 if name == BETTER else 0.1)
+    def fake_run(name, steps, seed, args):
+        ran.append((name, steps, seed))
+        _land(study, args.out, name, seed, 0.2 if name == BETTER else 0.1, steps=steps)
 
     monkeypatch.setattr(study, "run_arm", fake_run)
     _land(study, tmp_path, WORSE, 0, 0.1)
     study.run_all(_args(tmp_path))
-    assert ran == [(BETTER, 0), (BETTER, 1), (WORSE, 1)]
+    assert ran == [(BETTER, STEPS, 0), (WORSE, STEPS, 1), (BETTER, STEPS, 1)]
     summary = json.loads((tmp_path / "study.json").read_text())
     assert json.dumps(summary).count("holds") >= 1
 
@@ -166,15 +191,15 @@ def test_the_committed_verdicts_recompute_from_their_seed_files(study):
     def setting(run):
         return run.get("device", "CPU"), (run.get("world") or {}).get("sha256")
 
-    def runs_of(arm):
-        runs = [json.loads(path.read_text()) for path in folder.glob(f"{study._slug(arm)}/seed-*.json")]
+    def runs_of(arm, steps):
+        runs = [json.loads(path.read_text()) for path in folder.glob(f"{study._slug(arm)}/{steps}-steps/seed-*.json")]
         return {(setting(run), run["seed"]): run for run in runs}
 
     tested = 0
     for claim in summary["claims"]:
         if "difference" not in claim:
             continue
-        better, worse = runs_of(claim["better"]), runs_of(claim["worse"])
+        better, worse = runs_of(claim["better"], claim["steps"]), runs_of(claim["worse"], claim["steps"])
         where = (claim["device"], claim["world"])
         matched = {}
         for key in better.keys() & worse.keys():
