@@ -216,3 +216,13 @@ def test_the_committed_verdicts_recompute_from_their_seed_files(study):
         assert claim["status"] == expected, claim["text"]
         tested += 1
     assert tested >= 1
+
+
+def test_the_runs_picked_by_arms_and_budgets(study):
+    daocc = [pair for pair in study.budgets() if pair[1] == study.DAOCC_STEPS]
+    assert study._pairs(None, [study.DAOCC_STEPS]) == daocc and len(daocc) == 5
+    assert study._pairs([BETTER], None) == [(BETTER, study.CAMERA_STEPS), (BETTER, STEPS)]
+    assert study._pairs(None, None) == study.budgets()
+    # Both: those arms at those budgets, a claim's or not (where an arm stands at another budget).
+    assert study._pairs([BETTER, WORSE], [3000]) == [(WORSE, 3000), (BETTER, 3000)]
+    assert study._objects(0.5) == "0.50 (ground only)" and study._objects(4.0) == "4.00"
