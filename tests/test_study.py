@@ -32,7 +32,7 @@ def _args(out: Path) -> argparse.Namespace:
     (world / "labels.npz").write_bytes(b"\x00\x01")
     # The claim's budget only: da_occ_tiny also runs at the budget of the DAC claims.
     return argparse.Namespace(out=out, data=world, arms=[BETTER, WORSE], steps=[STEPS], seeds=2, commit=False,
-                              jobs=1)  # fmt: skip
+                              jobs=1, doc=out / "results.md")  # fmt: skip
 
 
 #: The budget of the claim "DA-Occ beats FlashOcc at matched size" (benchmarks/study.py's BASELINE_STEPS).
@@ -138,7 +138,12 @@ def test_run_all_runs_what_is_missing_and_rewrites_the_summary(study, tmp_path, 
 
     monkeypatch.setattr(study, "run_arm", fake_run)
     _land(study, tmp_path, WORSE, 0, 0.1)
+    doc = tmp_path / "results.md"  # a document with a marked table: rewritten with the summary
+    doc.write_text("# Results\n\nprose\n<!-- study.py: claims -->\nSTALE\n<!-- end -->\nmore prose\n")
     study.run_all(_args(tmp_path))
+    text = doc.read_text()
+    assert text.startswith("# Results\n\nprose\n<!-- study.py: claims -->\n| paper |") and "STALE" not in text
+    assert text.endswith("<!-- end -->\nmore prose\n") and "DA-Occ beats FlashOcc at matched size" in text
     assert ran == [(BETTER, STEPS, 0), (WORSE, STEPS, 1), (BETTER, STEPS, 1)]
     summary = json.loads((tmp_path / "study.json").read_text())
     assert json.dumps(summary).count("holds") >= 1
