@@ -512,9 +512,8 @@ def fill_tables(text: str, tables: dict[str, list[str]]) -> str:
     return text
 
 
-def write_report(out: Path, args: argparse.Namespace) -> dict:
-    """``study.json``, ``study.md`` and ``study.png`` from every finished run in ``out``, and the tables of
-    ``args.doc`` (docs/results.md) between their markers (:func:`fill_tables`)."""
+def build_report(out: Path, data: Path) -> tuple[dict, dict[str, list[str]]]:
+    """The summary of every finished run in ``out`` (trained on the world at ``data``) and its markdown tables."""
     runs = _finished(out)
     summaries = []  # one per arm and budget
     for name, arm_runs in runs.items():
@@ -527,10 +526,16 @@ def write_report(out: Path, args: argparse.Namespace) -> dict:
         device["runs"] += 1
         device["wall_hours"] += (run["train_seconds"] + run["eval_seconds"]) / 3600
         device["cpu_hours"] += (run["train_cpu_seconds"] + run["eval_cpu_seconds"]) / 3600
-    report = {"world": {**WORLD, "data": str(args.data)}, "arms": summaries, "claims": verdicts, "runs": runs,
+    report = {"world": {**WORLD, "data": str(data)}, "arms": summaries, "claims": verdicts, "runs": runs,
               "hours": hours}  # fmt: skip
+    return report, {"arms": arms_table(summaries), "claims": claims_table(verdicts), "hours": hours_lines(hours)}
+
+
+def write_report(out: Path, args: argparse.Namespace) -> dict:
+    """``study.json``, ``study.md`` and ``study.png`` from every finished run in ``out``, and the tables of
+    ``args.doc`` (docs/results.md) between their markers (:func:`fill_tables`)."""
+    report, tables = build_report(out, args.data)
     (out / "study.json").write_text(json.dumps(report, indent=2) + "\n")
-    tables = {"arms": arms_table(summaries), "claims": claims_table(verdicts), "hours": hours_lines(hours)}
     lines = [
         f"Every arm: its steps of batch 1 on the training scenes of `{args.data}`, scored on its held-out scenes; "
         "mean ± standard deviation over seeds (%). Objects: the mean IoU of the ten object classes (near 0 while a "
@@ -545,7 +550,7 @@ def write_report(out: Path, args: argparse.Namespace) -> dict:
         *tables["hours"],
     ]
     (out / "study.md").write_text("\n".join(lines) + "\n")
-    _plot(summaries, out / "study.png")
+    _plot(report["arms"], out / "study.png")
     if args.doc is not None and args.doc.is_file():
         args.doc.write_text(fill_tables(args.doc.read_text(), tables))
     return report

@@ -231,3 +231,11 @@ def test_the_runs_picked_by_arms_and_budgets(study):
     # Both: those arms at those budgets, a claim's or not (where an arm stands at another budget).
     assert study._pairs([BETTER, WORSE], [3000]) == [(WORSE, 3000), (BETTER, 3000)]
     assert study._objects(0.5) == "0.50 (ground only)" and study._objects(4.0) == "4.00"
+
+
+def test_the_documents_study_tables_are_the_result_files(study):
+    """docs/results.md's marked tables are what the committed result files give (no number without its file)."""
+    doc = (REPO / "docs" / "results.md").read_text()
+    _, tables = study.build_report(REPO / "docs" / "results" / "study", Path("data/study-world"))
+    assert all(f"<!-- study.py: {name} -->" in doc for name in tables)
+    assert study.fill_tables(doc, tables) == doc
