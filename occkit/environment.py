@@ -82,10 +82,11 @@ def environment_report() -> dict:
 
 
 def _shipped_weights() -> dict:
-    """Entry -> the demo-world scores of the weights occkit ships for it (``--weights synthetic``)."""
+    """Entry -> the demo-world scores of the weights occkit ships for it (``--weights synthetic``) and its card's
+    notes (where its run stands: converged or not, against its target)."""
     from occkit.shipped import card, shipped_entries
 
-    return {entry: card(entry).scores for entry in shipped_entries()}
+    return {entry: {**card(entry).scores, "notes": card(entry).notes} for entry in shipped_entries()}
 
 
 def format_environment_report(report: dict) -> str:
@@ -123,4 +124,6 @@ def format_environment_report(report: dict) -> str:
                  if shipped else "shipped weights: none")  # fmt: skip
     for entry, scores in shipped.items():
         lines.append(f"  {entry:<22} {100 * scores['miou']:.1f} / {100 * scores['iou']:.1f}")
+        if scores["notes"]:
+            lines.append(f"  {'':<22} {scores['notes']}")
     return "\n".join(lines)

@@ -63,3 +63,8 @@ def test_info_prints_and_writes_json(tmp_path, capsys):
     assert report["taxonomies"]["occ3d"]["classes"][17] == "free"
     assert "torch" in report["packages"]
     assert report["sparse_conv"]["available"] is True
+    # Each shipped model with where its run stands (its card's notes).
+    from occkit.shipped import card
+
+    notes = report["shipped_weights"]["da_occ_tiny"]["notes"]
+    assert notes == card("da_occ_tiny").notes and notes.startswith("converged") and notes in out
