@@ -1,7 +1,7 @@
 """The papers' ablations at tiny scale: every arm trained with one budget on one synthetic world, over seeds.
 
     python benchmarks/study.py [--data data/study-world] [--steps N ...] [--seeds 5]
-        [--arms NAME ...] [--out docs/results/study] [--runs runs/study] [--commit] [--report]
+        [--arms NAME ...] [--out docs/results/study] [--runs runs/study] [--doc docs/results.md] [--commit] [--report]
 
 Each arm is a CPU-sized zoo entry with one mechanism changed (:data:`ARMS`); a run trains it for a budget of
 optimizer steps of batch 1 from its zoo recipe, with seeds 0, 1, ... (the seed sets the initial weights, the sample
@@ -22,8 +22,9 @@ Resumable: each finished run writes ``<out>/<arm>/<steps>-steps/seed-<k>.json`` 
 at once with the summary, so an interrupted study keeps what it finished). A rerun skips the runs finished on this
 world (its content hash); it runs again, and replaces, those of another copy or none recorded; a killed run resumes
 from the newest checkpoint in ``<runs>/<arm>/<steps>-steps/seed-<k>``. The summary (``<out>/study.json``,
-``<out>/study.md`` and ``<out>/study.png``) is rewritten after every run; ``--report`` only rewrites it. Times are
-wall-clock and CPU seconds of this process and its data workers, per device: run it on an otherwise idle machine.
+``<out>/study.md``, ``<out>/study.png`` and the marked tables of ``--doc``) is rewritten after every run; ``--report``
+only rewrites it. Times are wall-clock and CPU seconds of this process and its data workers, per device: run it on an
+otherwise idle machine.
 """
 
 from __future__ import annotations
