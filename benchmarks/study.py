@@ -1,30 +1,31 @@
 """The papers' ablations at tiny scale: every arm trained with one budget on one synthetic world, over seeds.
 
-    python benchmarks/study.py [--data data/study-world] [--steps N ...] [--seeds 5]
+    python benchmarks/study.py [--data data/study-world] [--steps N ...] [--batch-size B] [--seeds 5]
         [--arms NAME ...] [--out docs/results/study] [--runs runs/study] [--doc docs/results.md] [--commit] [--report]
 
 Each arm is a CPU-sized zoo entry with one mechanism changed (:data:`ARMS`); a run trains it for a budget of
-optimizer steps of batch 1 from its zoo recipe, with seeds 0, 1, ... (the seed sets the initial weights, the sample
-order and the augmentation draws), on the training scenes of one world (:data:`WORLD`, written first if absent), and
-scores it on the world's held-out scenes: mIoU, the object classes' mIoU and geometry IoU under the camera mask, and
-RayIoU (temporal models streamed scene by scene, as ``occkit eval`` runs them).
+optimizer steps of some batch size from its zoo recipe, with seeds 0, 1, ... (the seed sets the initial weights, the
+sample order and the augmentation draws), on the training scenes of one world (:data:`WORLD`, written first if
+absent), and scores it on the world's held-out scenes: mIoU, the object classes' mIoU and geometry IoU under the camera
+mask, and RayIoU (temporal models streamed scene by scene, as ``occkit eval`` runs them).
 
 Each paper claim is a comparison of two arms at one budget (:data:`CLAIMS`; the budgets and why each is what it is:
-:data:`DAOCC_STEPS`, :data:`CAMERA_STEPS`, :data:`BASELINE_STEPS`), on the seeds both arms ran on one device and one
+:data:`DAOCC_BUDGET`, :data:`CAMERA_BUDGET`, :data:`RECIPE_BUDGET`), on the seeds both arms ran on one device and one
 copy of the world (matched: the same seed set for both; each run records its device and its world's content hash),
 every arm ``--seeds`` of them. Its verdict (:func:`verdict`) is a Welch test of the arms' mIoU over those seeds: the
 mean difference with its 95% confidence interval and the two-sided p-value; "holds" or "reversed" where p < 0.05 in
 that direction, else "no effect detected", with the smallest difference these seeds would have detected (at 80%
 power). The runs to do are every (arm, budget) a claim needs, times the seeds; ``--arms`` or ``--steps`` picks some
-of them, and both together run those arms at those budgets (to see where an arm stands at a budget no claim uses).
+of them, and both together run those arms for those steps of ``--batch-size`` (to see where an arm stands at a
+budget no claim uses).
 
-Resumable: each finished run writes ``<out>/<arm>/<steps>-steps/seed-<k>.json`` (with ``--commit``, committed to git
-at once with the summary, so an interrupted study keeps what it finished). A rerun skips the runs finished on this
-world (its content hash); it runs again, and replaces, those of another copy or none recorded; a killed run resumes
-from the newest checkpoint in ``<runs>/<arm>/<steps>-steps/seed-<k>``. The summary (``<out>/study.json``,
-``<out>/study.md``, ``<out>/study.png`` and the marked tables of ``--doc``) is rewritten after every run; ``--report``
-only rewrites it. Times are wall-clock and CPU seconds of this process and its data workers, per device: run it on an
-otherwise idle machine.
+Resumable: each finished run writes ``<out>/<arm>/<budget>/seed-<k>.json`` (``<budget>``: ``1500-steps``,
+``1728-steps-of-4``; with ``--commit``, committed to git at once with the summary, so an interrupted study keeps what
+it finished). A rerun skips the runs finished on this world (its content hash); it runs again, and replaces, those of
+another copy or none recorded; a killed run resumes from the newest checkpoint in ``<runs>/<arm>/<budget>/seed-<k>``.
+The summary (``<out>/study.json``, ``<out>/study.md``, ``<out>/study.png`` and the marked tables of ``--doc``) is
+rewritten after every run; ``--report`` only rewrites it. Times are wall-clock and CPU seconds of this process and its
+data workers, per device: run it on an otherwise idle machine.
 """
 
 from __future__ import annotations
@@ -148,21 +149,42 @@ ARMS: dict[str, Arm] = {
 }  # fmt: skip
 
 
-#: The budgets of the claims, in optimizer steps of batch 1 (the study world's 288 training frames are an epoch),
-#: each long enough for the claim's arms to predict objects, not only the ground: their object mIoU (the mean IoU
-#: of nuScenes' ten object classes, a column of the report) is then well above zero.
+@dataclass(frozen=True, order=True)
+class Budget:
+    """A run's length: ``steps`` optimizer steps of ``batch`` samples (the study world's 288 training frames are an
+    epoch)."""
+
+    steps: int
+    batch: int = 1
+
+    def __str__(self) -> str:
+        return f"{self.steps} steps" + (f" of {self.batch}" if self.batch > 1 else "")
+
+    @property
+    def folder(self) -> str:
+        """Its runs' folder name: ``1500-steps``, ``1728-steps-of-4``."""
+        return f"{self.steps}-steps" + (f"-of-{self.batch}" if self.batch > 1 else "")
+
+    @staticmethod
+    def of(run: dict) -> Budget:
+        """The budget a finished run trained with (runs without ``batch_size`` trained at batch 1)."""
+        return Budget(run["steps"], run.get("batch_size", 1))
+
+
+#: The claims' budgets, each long enough for the claim's arms to predict objects, not only the ground: their object
+#: mIoU (the mean IoU of nuScenes' ten object classes, a column of the report) is then well above zero.
 #: DAOcc's arms with LiDAR predict objects within a few hundred steps (object mIoU 10.8 to 16.6 in each run at 500);
 #: its camera branch alone does not (0.0), which is the gap "fusion beats camera only" measures at this budget.
-DAOCC_STEPS = 500
+DAOCC_BUDGET = Budget(500)
 #: DA-Occ's direction-aware convolutions and one history frame: each arm with the height branch predicts objects by
-#: 1,500 steps (object mIoU 3.9 to 5.6 in each run of these arms at that budget).
-CAMERA_STEPS = 1500
-#: The claims with an arm that at 1,500 steps predicts little beyond the ground: FlashOcc (object mIoU 0.06 and
-#: 0.13), DA-Occ without its height branch (0.58, 0.55) and the recurrent history (2.61, 0.55; its control, trained in
-#: the same order: 1.79, 2.23). The shipped flashocc_tiny's curve (docs/results/shipped/flashocc_tiny/val.jsonl)
-#: first scores objects after about 5,200 training samples (step 1,296 of batch 4, its learning rate still near the
-#: peak); a cosine over 6,000 batch-1 steps sums more than twice the learning rate that run had summed by then.
-BASELINE_STEPS = 6000
+#: 1,500 steps of batch 1 (object mIoU 3.9 to 5.6 in each run of these arms at that budget).
+CAMERA_BUDGET = Budget(1500)
+#: 24 epochs of batch 4, FlashOcc's and DA-Occ's own schedule length, for the claims with an arm that at 1,500 steps of
+#: batch 1 predicts little beyond the ground: FlashOcc (object mIoU 0.06 and 0.13; 0.03 at 3,000 steps), DA-Occ
+#: without its height branch (0.58, 0.55) and the recurrent history (2.61, 0.55; its control, trained in the same
+#: order: 1.79, 2.23). On a world of the same size (16 scenes of 24 frames, seed 2026), flashocc_tiny trained 24
+#: epochs of batch 4 ends at 3.4 object mIoU, and da_occ_tiny at 8.4 (docs/results/shipped/*_24_epochs/val.jsonl).
+RECIPE_BUDGET = Budget(1728, 4)
 #: The object mIoU (points) below which a run counts as predicting only the ground: the report marks a claim whose
 #: runs fall below it (at 1,500 steps flashocc_tiny scored 0.06 and 0.13, the arms with the height branch 3.9 to 5.6).
 OBJECTS_LEARNED = 1.0
@@ -170,48 +192,48 @@ OBJECTS_LEARNED = 1.0
 
 @dataclass(frozen=True)
 class Claim:
-    """A paper's claim as a comparison at one budget: ``better`` should score above ``worse`` after ``steps``."""
+    """A paper's claim as a comparison at one budget: ``better`` should score above ``worse`` after ``budget``."""
 
     paper: str
     text: str
     better: str
     worse: str
-    steps: int
+    budget: Budget
     paper_gain: str
     """What the paper measures for it (mIoU on Occ3D-nuScenes), "-" where it does not."""
 
 
 CLAIMS: list[Claim] = [
     Claim("DAOcc", "the auxiliary detection head improves occupancy", "daocc_tiny", "daocc_tiny - detection",
-          DAOCC_STEPS, "+1.56"),
+          DAOCC_BUDGET, "+1.56"),
     Claim("DAOcc", "the BEV range extension (BVRE) improves occupancy", "daocc_tiny", "daocc_tiny - BVRE",
-          DAOCC_STEPS, "+0.5"),
-    Claim("survey", "fusion beats camera only", "daocc_tiny", "daocc_tiny camera only", DAOCC_STEPS, "-"),
-    Claim("survey", "fusion beats LiDAR only", "daocc_tiny", "daocc_tiny LiDAR only", DAOCC_STEPS, "-"),
-    Claim("DA-Occ", "DA-Occ beats FlashOcc at matched size", "da_occ_tiny", "flashocc_tiny", BASELINE_STEPS,
+          DAOCC_BUDGET, "+0.5"),
+    Claim("survey", "fusion beats camera only", "daocc_tiny", "daocc_tiny camera only", DAOCC_BUDGET, "-"),
+    Claim("survey", "fusion beats LiDAR only", "daocc_tiny", "daocc_tiny LiDAR only", DAOCC_BUDGET, "-"),
+    Claim("DA-Occ", "DA-Occ beats FlashOcc at matched size", "da_occ_tiny", "flashocc_tiny", RECIPE_BUDGET,
           "+2.43 (34.38 against M0's 31.95)"),
-    Claim("DA-Occ", "the height branch helps", "da_occ_tiny", "da_occ_tiny - height", BASELINE_STEPS,
+    Claim("DA-Occ", "the height branch helps", "da_occ_tiny", "da_occ_tiny - height", RECIPE_BUDGET,
           "not ablated; 16 height bins against 4: +1.5"),
-    Claim("DA-Occ", "HeightNet's DACs help", "da_occ_tiny", "da_occ_tiny - HeightNet DAC", CAMERA_STEPS,
+    Claim("DA-Occ", "HeightNet's DACs help", "da_occ_tiny", "da_occ_tiny - HeightNet DAC", CAMERA_BUDGET,
           "all four DACs: +1.8"),
-    Claim("DA-Occ", "the horizontal BEV DAC helps", "da_occ_tiny", "da_occ_tiny - BEV horizontal DAC", CAMERA_STEPS,
+    Claim("DA-Occ", "the horizontal BEV DAC helps", "da_occ_tiny", "da_occ_tiny - BEV horizontal DAC", CAMERA_BUDGET,
           "(all four: +1.8)"),
-    Claim("DA-Occ", "the vertical BEV DAC helps", "da_occ_tiny", "da_occ_tiny - BEV vertical DAC", CAMERA_STEPS,
+    Claim("DA-Occ", "the vertical BEV DAC helps", "da_occ_tiny", "da_occ_tiny - BEV vertical DAC", CAMERA_BUDGET,
           "(all four: +1.8)"),
-    Claim("DA-Occ", "the height volume's DAC helps", "da_occ_tiny", "da_occ_tiny - height-volume DAC", CAMERA_STEPS,
+    Claim("DA-Occ", "the height volume's DAC helps", "da_occ_tiny", "da_occ_tiny - height-volume DAC", CAMERA_BUDGET,
           "(all four: +1.8)"),
-    Claim("DA-Occ", "one history frame helps", "da_occ_tiny + 1 frame", "da_occ_tiny", CAMERA_STEPS,
+    Claim("DA-Occ", "one history frame helps", "da_occ_tiny + 1 frame", "da_occ_tiny", CAMERA_BUDGET,
           "+1.39 (35.77 against 34.38)"),
-    Claim("DA-Occ", "a long history helps", "da_occ_tiny + recurrent", "da_occ_tiny", BASELINE_STEPS,
+    Claim("DA-Occ", "a long history helps", "da_occ_tiny + recurrent", "da_occ_tiny", RECIPE_BUDGET,
           "+4.9 (16 frames: 39.3)"),
     Claim("DA-Occ", "a long history helps, order held equal", "da_occ_tiny + recurrent", "da_occ_tiny (streams)",
-          BASELINE_STEPS, "-"),
+          RECIPE_BUDGET, "-"),
 ]  # fmt: skip
 
 
-def budgets() -> list[tuple[str, int]]:
-    """Every (arm, steps) a claim needs, by budget, then in :data:`ARMS`' order."""
-    needed = {(arm, claim.steps) for claim in CLAIMS for arm in (claim.better, claim.worse)}
+def budgets() -> list[tuple[str, Budget]]:
+    """Every (arm, budget) a claim needs, by budget, then in :data:`ARMS`' order."""
+    needed = {(arm, claim.budget) for claim in CLAIMS for arm in (claim.better, claim.worse)}
     return sorted(needed, key=lambda pair: (pair[1], list(ARMS).index(pair[0])))
 
 
@@ -247,34 +269,34 @@ def finished_run(result_file: Path, data: Path) -> dict | None:
     return run if run.get("world", {}).get("sha256") == world_digest(data.resolve()) else None
 
 
-def run_folder(root: Path, name: str, steps: int, seed: int) -> Path:
-    """Where one run of arm ``name`` at budget ``steps`` lives under ``root``: its result file's folder under
-    ``--out``, its checkpoints under ``--runs``."""
-    return root / _slug(name) / f"{steps}-steps" / f"seed-{seed}"
+def run_folder(root: Path, name: str, budget: Budget, seed: int) -> Path:
+    """Where one run of arm ``name`` at ``budget`` lives under ``root``: its result file's folder under ``--out``, its
+    checkpoints under ``--runs``."""
+    return root / _slug(name) / budget.folder / f"seed-{seed}"
 
 
-def result_path(out: Path, name: str, steps: int, seed: int) -> Path:
-    """The result file of one run: ``<out>/<arm>/<steps>-steps/seed-<k>.json``."""
-    return run_folder(out, name, steps, seed).with_suffix(".json")
+def result_path(out: Path, name: str, budget: Budget, seed: int) -> Path:
+    """The result file of one run: ``<out>/<arm>/<steps>-steps[-of-<batch>]/seed-<k>.json``."""
+    return run_folder(out, name, budget, seed).with_suffix(".json")
 
 
-def run_arm(name: str, steps: int, seed: int, args: argparse.Namespace) -> dict:
-    """Train and score one arm for ``steps`` at one seed; the stored result when it already ran on this world."""
-    result_file = result_path(args.out, name, steps, seed)
+def run_arm(name: str, budget: Budget, seed: int, args: argparse.Namespace) -> dict:
+    """Train and score one arm for ``budget`` at one seed; the stored result when it already ran on this world."""
+    result_file = result_path(args.out, name, budget, seed)
     if (run := finished_run(result_file, args.data)) is not None:
         return run
     if result_file.is_file():
         print(
-            f"[study] {name}, {steps} steps, seed {seed}: {result_file} trained on another copy of the world (or "
+            f"[study] {name}, {budget}, seed {seed}: {result_file} trained on another copy of the world (or "
             "did not record it): running it again on this one",
             flush=True,
         )
     arm = ARMS[name]
     experiment = _data(arm.experiment(), root=str(args.data))
-    experiment = replace_train(experiment, max_steps=steps, epochs=10_000, val_every=-1,
-                               checkpoint_every=args.checkpoint_every, seed=seed)  # fmt: skip
-    folder = run_folder(args.runs, name, steps, seed)
-    print(f"[study] {name}, seed {seed}: training {steps} steps into {folder}", flush=True)
+    experiment = replace_train(experiment, max_steps=budget.steps, batch_size=budget.batch, epochs=10_000,
+                               val_every=-1, checkpoint_every=args.checkpoint_every, seed=seed)  # fmt: skip
+    folder = run_folder(args.runs, name, budget, seed)
+    print(f"[study] {name}, seed {seed}: training {budget} into {folder}", flush=True)
     pointer = folder / "last.json"  # the checkpoint a resumed run starts from
     start_step = int(json.loads(pointer.read_text())["step"]) if pointer.is_file() else 0
     wall, cpu = time.perf_counter(), _cpu_seconds()
@@ -294,6 +316,7 @@ def run_arm(name: str, steps: int, seed: int, args: argparse.Namespace) -> dict:
     scores = score_model(model, dataset, workers=1)
     result = {
         "arm": name, "entry": arm.entry, "description": arm.description, "seed": seed, "steps": run.steps,
+        "batch_size": budget.batch,
         **{key: scores[key] for key in METRICS}, "per_class_iou": scores["per_class_iou"], "frames": scores["frames"],
         "train_seconds": train_wall, "train_cpu_seconds": train_cpu, "resumed_from_step": start_step,
         "eval_seconds": time.perf_counter() - wall,
@@ -304,19 +327,19 @@ def run_arm(name: str, steps: int, seed: int, args: argparse.Namespace) -> dict:
     result_file.parent.mkdir(parents=True, exist_ok=True)
     result_file.write_text(json.dumps(result, indent=2) + "\n")
     print(
-        f"[study] {name}, {steps} steps, seed {seed}: mIoU {100 * result['miou']:.2f}, "
+        f"[study] {name}, {budget}, seed {seed}: mIoU {100 * result['miou']:.2f}, "
         f"IoU {100 * result['iou']:.2f}, RayIoU {100 * result['rayiou']:.2f} ({train_wall / 60:.1f} min training)",
         flush=True,
     )
     return result
 
 
-def commit(name: str, steps: int, seed: int, out: Path, doc: Path | None) -> None:
+def commit(name: str, budget: Budget, seed: int, out: Path, doc: Path | None) -> None:
     """Commit one finished run's result file with the summary it was just written into (and ``doc``'s tables)."""
     summary = [str(out / f"study.{ext}") for ext in ("json", "md", "png")] + ([str(doc)] if doc else [])
-    files = [str(result_path(out, name, steps, seed)), *summary]
+    files = [str(result_path(out, name, budget, seed)), *summary]
     # Another git command in the same checkout (its index lock) may make one try fail: try again before giving up.
-    message = f"study: {name}, {steps} steps, seed {seed}"
+    message = f"study: {name}, {budget}, seed {seed}"
     for attempt in range(5):
         added = subprocess.run(["git", "add", "--", *files]).returncode == 0
         if added and subprocess.run(["git", "commit", "-q", "-m", message, "--", *files]).returncode == 0:
@@ -329,9 +352,9 @@ def _finished(out: Path) -> dict[str, list[dict]]:
     """Arm -> its finished runs, by budget, then seed."""
     runs = {}
     for name in ARMS:
-        files = (out / _slug(name)).glob("*-steps/seed-*.json")
+        files = (out / _slug(name)).glob("*-steps*/seed-*.json")
         found = [json.loads(f.read_text()) for f in files]
-        runs[name] = sorted(found, key=lambda run: (run["steps"], run["seed"]))
+        runs[name] = sorted(found, key=lambda run: (Budget.of(run), run["seed"]))
     return runs
 
 
@@ -409,10 +432,10 @@ def verdict(claim: Claim, runs: dict[str, list[dict]]) -> dict:
     difference the seeds would have detected; ``objects``: the lowest object mIoU (points) of the runs compared,
     which says whether both arms had learned objects at this budget."""
     better, worse = (
-        [r for r in runs.get(name) or [] if r["steps"] == claim.steps] for name in (claim.better, claim.worse)
+        [r for r in runs.get(name) or [] if Budget.of(r) == claim.budget] for name in (claim.better, claim.worse)
     )
     if not better or not worse:
-        return {"status": f"not run at {claim.steps} steps"}
+        return {"status": f"not run at {claim.budget}"}
     setting, seeds = matched_seeds(better, worse)
     where = {} if setting is None else {"device": setting[0], "world": setting[1]}
     if len(seeds) < 2:
@@ -449,12 +472,12 @@ def _cell(summary: dict, key: str) -> str:
 def arms_table(summaries: list[dict]) -> list[str]:
     """The markdown table of every arm at every budget it ran: mean ± standard deviation over its seeds (%)."""
     lines = [
-        "| arm | what differs | steps | trained on | seeds | mIoU | objects | IoU | RayIoU | train min | "
+        "| arm | what differs | budget | trained on | seeds | mIoU | objects | IoU | RayIoU | train min | "
         "train CPU min |",
         "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
     ]
     for summary in summaries:
-        lines.append(f"| `{summary['arm']}` | {ARMS[summary['arm']].description} | {summary['steps']} | "
+        lines.append(f"| `{summary['arm']}` | {ARMS[summary['arm']].description} | {summary['budget']} | "
                      f"{', '.join(summary['devices'])} | {len(summary['seeds'])} | {_cell(summary, 'miou')} | "
                      f"{_cell(summary, 'object_miou')} | {_cell(summary, 'iou')} | {_cell(summary, 'rayiou')} | "
                      f"{summary['train_minutes']:.1f} | {summary['train_cpu_minutes']:.1f} |")  # fmt: skip
@@ -463,12 +486,12 @@ def arms_table(summaries: list[dict]) -> list[str]:
 
 def claims_table(verdicts: list[dict]) -> list[str]:
     """The markdown table of the claims' verdicts (:func:`verdict`), beside the papers' own gains."""
-    lines = ["| paper | claim | paper's gain (mIoU) | better | worse | steps | seeds | run on | "
+    lines = ["| paper | claim | paper's gain (mIoU) | better | worse | budget | seeds | run on | "
              "mIoU difference (95% interval) | p | IoU difference | objects | verdict | detectable |",
              "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]  # fmt: skip
     for v in verdicts:
         head = (f"| {v['paper']} | {v['text']} | {v['paper_gain']} | `{v['better']}` | `{v['worse']}` | "
-                f"{v['steps']} | ")  # fmt: skip
+                f"{Budget(**v['budget'])} | ")  # fmt: skip
         if "difference" not in v:
             lines.append(f"{head}{len(v.get('seeds', []))} | {_where(v)} | - | - | - | - | {v['status']} | - |")
             continue
@@ -518,8 +541,9 @@ def build_report(out: Path, data: Path) -> tuple[dict, dict[str, list[str]]]:
     runs = _finished(out)
     summaries = []  # one per arm and budget
     for name, arm_runs in runs.items():
-        for steps in sorted({r["steps"] for r in arm_runs}):
-            summaries.append({"arm": name, "steps": steps, **summarise([r for r in arm_runs if r["steps"] == steps])})
+        for budget in sorted({Budget.of(r) for r in arm_runs}):
+            done = [r for r in arm_runs if Budget.of(r) == budget]
+            summaries.append({"arm": name, "budget": str(budget), **summarise(done)})
     verdicts = [{**dataclasses.asdict(claim), **verdict(claim, runs)} for claim in CLAIMS]
     hours: dict[str, dict[str, float]] = {}  # device -> wall-clock and CPU hours of its runs (training + scoring)
     for run in (r for arm_runs in runs.values() for r in arm_runs):
@@ -538,9 +562,9 @@ def write_report(out: Path, args: argparse.Namespace) -> dict:
     report, tables = build_report(out, args.data)
     (out / "study.json").write_text(json.dumps(report, indent=2) + "\n")
     lines = [
-        f"Every arm: its steps of batch 1 on the training scenes of `{args.data}`, scored on its held-out scenes; "
-        "mean ± standard deviation over seeds (%). Objects: the mean IoU of the ten object classes (near 0 while a "
-        "model predicts only the ground).",
+        f"Every arm at each budget it ran (steps of batch 1 unless said) on the training scenes of `{args.data}`, "
+        "scored on its held-out scenes; mean ± standard deviation over seeds (%). Objects: the mean IoU of the ten "
+        "object classes (near 0 while a model predicts only the ground).",
         "",
         *tables["arms"],
         "",
@@ -572,7 +596,7 @@ def _plot(summaries: list[dict], path: Path) -> None:
         axis.barh(range(len(summaries)), means, xerr=[low, high], color=colours, capsize=2)
         axis.set_title(title, fontsize=10)
         axis.grid(axis="x", alpha=0.3)
-    labels = [f"{s['arm']} ({s['steps']} steps)" for s in summaries]
+    labels = [f"{s['arm']} ({s['budget']})" for s in summaries]
     axes[0].set_yticks(range(len(summaries)), labels, fontsize=8)
     axes[0].invert_yaxis()
     fig.suptitle("tiny-scale ablations, held-out scenes (bars: mean; whiskers: range over seeds)", fontsize=10)
@@ -580,26 +604,28 @@ def _plot(summaries: list[dict], path: Path) -> None:
     save_figure(fig, path, dpi=110)
 
 
-#: One run of the study: arm, budget (steps), seed.
-Job = tuple[str, int, int]
+#: One run of the study: arm, budget, seed.
+Job = tuple[str, Budget, int]
 
 
-def _pairs(arms: list[str] | None, steps: list[int] | None) -> list[tuple[str, int]]:
+def _pairs(arms: list[str] | None, steps: list[int] | None, batch: int = 1) -> list[tuple[str, Budget]]:
     """The (arm, budget) pairs to run: the claims' (:func:`budgets`) of ``arms`` at ``steps`` (None: all); when both
-    are given, every arm at every budget, whether or not a claim compares it there (to see where an arm stands at
-    another budget)."""
+    are given, every arm for every number of steps of ``batch``, whether or not a claim compares it there (to see
+    where an arm stands at another budget)."""
     if arms and steps:
-        return sorted(((a, s) for a in arms for s in steps), key=lambda pair: (pair[1], list(ARMS).index(pair[0])))
-    return [(a, s) for a, s in budgets() if (not arms or a in arms) and (not steps or s in steps)]
+        pairs = ((a, Budget(s, batch)) for a in arms for s in steps)
+        return sorted(pairs, key=lambda pair: (pair[1], list(ARMS).index(pair[0])))
+    return [(a, b) for a, b in budgets() if (not arms or a in arms) and (not steps or b.steps in steps)]
 
 
 def _todo(args: argparse.Namespace, running: set[Job]) -> list[Job]:
     """The runs still to start, seed-major: seeds 0 to ``--seeds`` - 1 (the same seed set for all, so that every
     claim compares matched seeds) of every (arm, budget) of :func:`_pairs`, that have no result from this world
     (:func:`finished_run`)."""
-    return [(name, steps, seed) for seed in range(args.seeds) for name, steps in _pairs(args.arms, args.steps)
-            if (name, steps, seed) not in running
-            and finished_run(result_path(args.out, name, steps, seed), args.data) is None]  # fmt: skip
+    return [(name, budget, seed) for seed in range(args.seeds)
+            for name, budget in _pairs(args.arms, args.steps, args.batch_size)
+            if (name, budget, seed) not in running
+            and finished_run(result_path(args.out, name, budget, seed), args.data) is None]  # fmt: skip
 
 
 def _worker_threads(threads: int) -> None:
@@ -613,10 +639,10 @@ def run_all(args: argparse.Namespace) -> None:
     the CPU cores (``cpu_count // jobs`` threads each).
     """
 
-    def landed(name: str, steps: int, seed: int) -> None:
+    def landed(name: str, budget: Budget, seed: int) -> None:
         write_report(args.out, args)
         if args.commit:
-            commit(name, steps, seed, args.out, args.doc if args.doc and args.doc.is_file() else None)
+            commit(name, budget, seed, args.out, args.doc if args.doc and args.doc.is_file() else None)
 
     if args.jobs == 1:
         while todo := _todo(args, set()):
@@ -648,6 +674,9 @@ def main() -> None:
         nargs="+",
         default=None,
         help="only the runs at these budgets (default: every budget a claim needs); with --arms, those arms at these",
+    )
+    parser.add_argument(
+        "--batch-size", type=int, default=1, help="with --arms and --steps: the batch of those runs (default 1)"
     )
     parser.add_argument("--seeds", type=int, default=5, help="seeds per arm, the same for every arm (default 5)")
     parser.add_argument(

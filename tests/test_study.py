@@ -16,8 +16,7 @@ SCORES = {name: 0.05 for name in ("car", "truck", "construction_vehicle", "bus",
                                   "bicycle", "pedestrian", "traffic_cone")}  # fmt: skip
 
 
-@pytest.fixture(scope="module")
-def study():
+def _load_study():
     """benchmarks/study.py as a module (benchmarks/ is not a package)."""
     spec = importlib.util.spec_from_file_location("benchmarks_study", REPO / "benchmarks" / "study.py")
     module = importlib.util.module_from_spec(spec)
@@ -26,55 +25,63 @@ def study():
     return module
 
 
+STUDY = _load_study()
+#: The budget of the claim "DA-Occ beats FlashOcc at matched size": 24 epochs of batch 4.
+BUDGET = STUDY.RECIPE_BUDGET
+
+
+@pytest.fixture(scope="module")
+def study():
+    return STUDY
+
+
 def _args(out: Path) -> argparse.Namespace:
     world = out / "world"
     world.mkdir(exist_ok=True)
     (world / "labels.npz").write_bytes(b"\x00\x01")
     # The claim's budget only: da_occ_tiny also runs at the budget of the DAC claims.
-    return argparse.Namespace(out=out, data=world, arms=[BETTER, WORSE], steps=[STEPS], seeds=2, commit=False,
-                              jobs=1, doc=out / "results.md")  # fmt: skip
+    return argparse.Namespace(out=out, data=world, arms=[BETTER, WORSE], steps=[BUDGET.steps], batch_size=BUDGET.batch,
+                              seeds=2, commit=False, jobs=1, doc=out / "results.md")  # fmt: skip
 
 
-#: The budget of the claim "DA-Occ beats FlashOcc at matched size" (benchmarks/study.py's BASELINE_STEPS).
-STEPS = 6000
-
-
-def _land(study, out: Path, arm: str, seed: int, miou: float, world: str | None = None, steps: int = STEPS) -> None:
+def _land(study, out: Path, arm: str, seed: int, miou: float, world: str | None = None, budget=BUDGET) -> None:
     """A finished run's result file, trained on the world of :func:`_args` unless ``world`` names another hash."""
-    path = study.result_path(out, arm, steps, seed)
+    path = study.result_path(out, arm, budget, seed)
     path.parent.mkdir(parents=True, exist_ok=True)
     sha256 = world or study.world_digest(_args(out).data.resolve())
-    result = {"arm": arm, "seed": seed, "steps": steps, "miou": miou, "iou": 0.5, "rayiou": 0.1, "device": "CPU",
-              "per_class_iou": SCORES, "train_seconds": 60.0, "train_cpu_seconds": 120.0, "eval_seconds": 1.0,
-              "eval_cpu_seconds": 2.0, "world": {"sha256": sha256}}  # fmt: skip
+    result = {"arm": arm, "seed": seed, "steps": budget.steps, "batch_size": budget.batch, "miou": miou, "iou": 0.5,
+              "rayiou": 0.1, "device": "CPU", "per_class_iou": SCORES, "train_seconds": 60.0,
+              "train_cpu_seconds": 120.0, "eval_seconds": 1.0, "eval_cpu_seconds": 2.0,
+              "world": {"sha256": sha256}}  # fmt: skip
     path.write_text(json.dumps(result))
 
 
 def test_the_claims_budgets(study):
     claim = next(c for c in study.CLAIMS if (c.better, c.worse) == (BETTER, WORSE))
-    assert claim.steps == STEPS == study.BASELINE_STEPS
+    assert claim.budget == BUDGET == study.Budget(1728, 4) and str(BUDGET) == "1728 steps of 4"
+    assert BUDGET.folder == "1728-steps-of-4" and study.CAMERA_BUDGET.folder == "1500-steps"
     budgets = study.budgets()
-    assert len(budgets) == len(set(budgets)) and [s for _, s in budgets] == sorted(s for _, s in budgets)
-    assert (BETTER, study.CAMERA_STEPS) in budgets and (BETTER, STEPS) in budgets  # the DAC claims and this one
-    assert (WORSE, study.CAMERA_STEPS) not in budgets
+    assert len(budgets) == len(set(budgets)) and [b for _, b in budgets] == sorted(b for _, b in budgets)
+    assert (BETTER, study.CAMERA_BUDGET) in budgets and (BETTER, BUDGET) in budgets  # the DAC claims and this one
+    assert (WORSE, study.CAMERA_BUDGET) not in budgets
 
 
 def test_a_seed_that_landed_first_is_not_run_again(study, tmp_path):
     _land(study, tmp_path, BETTER, 1, 0.2)  # seed 1 finished before seed 0 (runs in parallel)
     # Seed-major, in the order of ARMS (flashocc_tiny first).
-    assert study._todo(_args(tmp_path), set()) == [(WORSE, STEPS, 0), (BETTER, STEPS, 0), (WORSE, STEPS, 1)]
-    assert study._todo(_args(tmp_path), {(BETTER, STEPS, 0), (WORSE, STEPS, 0)}) == [(WORSE, STEPS, 1)]
+    assert study._todo(_args(tmp_path), set()) == [(WORSE, BUDGET, 0), (BETTER, BUDGET, 0), (WORSE, BUDGET, 1)]
+    assert study._todo(_args(tmp_path), {(BETTER, BUDGET, 0), (WORSE, BUDGET, 0)}) == [(WORSE, BUDGET, 1)]
     args = _args(tmp_path)
     args.steps = None  # every budget: da_occ_tiny's runs for the DAC claims come first
-    assert study._todo(args, set())[:2] == [(BETTER, study.CAMERA_STEPS, 0), (WORSE, STEPS, 0)]
+    assert study._todo(args, set())[:2] == [(BETTER, study.CAMERA_BUDGET, 0), (WORSE, BUDGET, 0)]
 
 
-def _runs(better: list[float], worse: list[float], steps: tuple[int, int] = (STEPS, STEPS)) -> dict[str, list[dict]]:
+def _runs(better: list[float], worse: list[float], budgets=(BUDGET, BUDGET)) -> dict[str, list[dict]]:
     def arm(values, budget):
-        return [{"seed": seed, "steps": budget, "miou": value, "iou": 0.5, "per_class_iou": SCORES}
-                for seed, value in enumerate(values)]  # fmt: skip
+        return [{"seed": seed, "steps": budget.steps, "batch_size": budget.batch, "miou": value, "iou": 0.5,
+                 "per_class_iou": SCORES} for seed, value in enumerate(values)]  # fmt: skip
 
-    return {BETTER: arm(better, steps[0]), WORSE: arm(worse, steps[1])}
+    return {BETTER: arm(better, budgets[0]), WORSE: arm(worse, budgets[1])}
 
 
 @pytest.mark.parametrize(
@@ -105,11 +112,14 @@ def test_a_claim_needs_two_matched_seeds_and_one_budget(study):
     claim = next(c for c in study.CLAIMS if (c.better, c.worse) == (BETTER, WORSE))
     runs = _runs([0.2, 0.3], [0.1])
     assert study.verdict(claim, runs)["status"] == "too few matched seeds (1)"
-    runs[WORSE].append({"seed": 7, "steps": STEPS, "miou": 0.1, "iou": 0.5})  # a seed the other arm lacks
+    runs[WORSE].append({"seed": 7, "steps": 1728, "batch_size": 4, "miou": 0.1, "iou": 0.5})  # only one arm's seed
     assert study.verdict(claim, runs)["status"] == "too few matched seeds (1)"
     # Runs at another budget are not this claim's.
-    assert study.verdict(claim, _runs([0.2, 0.3], [0.1, 0.2], steps=(STEPS, 10)))["status"] == "not run at 6000 steps"
-    assert study.verdict(claim, {BETTER: [], WORSE: []})["status"] == "not run at 6000 steps"
+    # Runs at another budget (here 1728 steps of batch 1) are not this claim's.
+    other = study.Budget(BUDGET.steps)
+    result = study.verdict(claim, _runs([0.2, 0.3], [0.1, 0.2], (BUDGET, other)))
+    assert result["status"] == "not run at 1728 steps of 4"
+    assert study.verdict(claim, {BETTER: [], WORSE: []})["status"] == "not run at 1728 steps of 4"
     assert study.verdict(claim, _runs([0.2, 0.3], [0.1, 0.2]))["objects"] == pytest.approx(5.0)
 
 
@@ -117,8 +127,8 @@ def test_a_run_on_another_copy_of_the_world_is_run_again(study, tmp_path):
     _land(study, tmp_path, BETTER, 0, 0.2)
     _land(study, tmp_path, WORSE, 0, 0.1, world="sha256:another")
     _land(study, tmp_path, BETTER, 1, 0.2)
-    study.result_path(tmp_path, WORSE, STEPS, 1).write_text(json.dumps({"seed": 1, "miou": 0.1}))  # no hash
-    assert study._todo(_args(tmp_path), set()) == [(WORSE, STEPS, 0), (WORSE, STEPS, 1)]
+    study.result_path(tmp_path, WORSE, BUDGET, 1).write_text(json.dumps({"seed": 1, "miou": 0.1}))  # no hash
+    assert study._todo(_args(tmp_path), set()) == [(WORSE, BUDGET, 0), (WORSE, BUDGET, 1)]
 
 
 def test_every_arm_runs_the_same_seeds(study, tmp_path):
@@ -126,15 +136,15 @@ def test_every_arm_runs_the_same_seeds(study, tmp_path):
         _land(study, tmp_path, BETTER, seed, miou)
     args = _args(tmp_path)
     args.seeds = 3
-    assert study._todo(args, set()) == [(WORSE, STEPS, 0), (WORSE, STEPS, 1), (WORSE, STEPS, 2), (BETTER, STEPS, 2)]
+    assert study._todo(args, set()) == [(WORSE, BUDGET, 0), (WORSE, BUDGET, 1), (WORSE, BUDGET, 2), (BETTER, BUDGET, 2)]
 
 
 def test_run_all_runs_what_is_missing_and_rewrites_the_summary(study, tmp_path, monkeypatch):
     ran = []
 
-    def fake_run(name, steps, seed, args):
-        ran.append((name, steps, seed))
-        _land(study, args.out, name, seed, 0.2 if name == BETTER else 0.1, steps=steps)
+    def fake_run(name, budget, seed, args):
+        ran.append((name, budget, seed))
+        _land(study, args.out, name, seed, 0.2 if name == BETTER else 0.1, budget=budget)
 
     monkeypatch.setattr(study, "run_arm", fake_run)
     _land(study, tmp_path, WORSE, 0, 0.1)
@@ -144,7 +154,7 @@ def test_run_all_runs_what_is_missing_and_rewrites_the_summary(study, tmp_path, 
     text = doc.read_text()
     assert text.startswith("# Results\n\nprose\n<!-- study.py: claims -->\n| paper |") and "STALE" not in text
     assert text.endswith("<!-- end -->\nmore prose\n") and "DA-Occ beats FlashOcc at matched size" in text
-    assert ran == [(BETTER, STEPS, 0), (WORSE, STEPS, 1), (BETTER, STEPS, 1)]
+    assert ran == [(BETTER, BUDGET, 0), (WORSE, BUDGET, 1), (BETTER, BUDGET, 1)]
     summary = json.loads((tmp_path / "study.json").read_text())
     assert json.dumps(summary).count("holds") >= 1
 
@@ -196,15 +206,16 @@ def test_the_committed_verdicts_recompute_from_their_seed_files(study):
     def setting(run):
         return run.get("device", "CPU"), (run.get("world") or {}).get("sha256")
 
-    def runs_of(arm, steps):
-        runs = [json.loads(path.read_text()) for path in folder.glob(f"{study._slug(arm)}/{steps}-steps/seed-*.json")]
+    def runs_of(arm, budget):
+        files = folder.glob(f"{study._slug(arm)}/{study.Budget(**budget).folder}/seed-*.json")
+        runs = [json.loads(path.read_text()) for path in files]
         return {(setting(run), run["seed"]): run for run in runs}
 
     tested = 0
     for claim in summary["claims"]:
         if "difference" not in claim:
             continue
-        better, worse = runs_of(claim["better"], claim["steps"]), runs_of(claim["worse"], claim["steps"])
+        better, worse = runs_of(claim["better"], claim["budget"]), runs_of(claim["worse"], claim["budget"])
         where = (claim["device"], claim["world"])
         matched = {}
         for key in better.keys() & worse.keys():
@@ -224,12 +235,13 @@ def test_the_committed_verdicts_recompute_from_their_seed_files(study):
 
 
 def test_the_runs_picked_by_arms_and_budgets(study):
-    daocc = [pair for pair in study.budgets() if pair[1] == study.DAOCC_STEPS]
-    assert study._pairs(None, [study.DAOCC_STEPS]) == daocc and len(daocc) == 5
-    assert study._pairs([BETTER], None) == [(BETTER, study.CAMERA_STEPS), (BETTER, STEPS)]
+    daocc = [pair for pair in study.budgets() if pair[1] == study.DAOCC_BUDGET]
+    assert study._pairs(None, [500]) == daocc and len(daocc) == 5
+    assert study._pairs([BETTER], None) == [(BETTER, study.CAMERA_BUDGET), (BETTER, BUDGET)]
     assert study._pairs(None, None) == study.budgets()
     # Both: those arms at those budgets, a claim's or not (where an arm stands at another budget).
-    assert study._pairs([BETTER, WORSE], [3000]) == [(WORSE, 3000), (BETTER, 3000)]
+    assert study._pairs([BETTER, WORSE], [3000]) == [(WORSE, study.Budget(3000)), (BETTER, study.Budget(3000))]
+    assert study._pairs([WORSE], [72], batch=4) == [(WORSE, study.Budget(72, 4))]
     assert study._objects(0.5) == "0.50 (ground only)" and study._objects(4.0) == "4.00"
 
 
