@@ -231,10 +231,15 @@ CLAIMS: list[Claim] = [
 ]  # fmt: skip
 
 
+def _run_order(pair: tuple[str, Budget]) -> tuple[Budget, int]:
+    """Sort key of (arm, budget) pairs: by budget, then in :data:`ARMS`' order."""
+    return pair[1], list(ARMS).index(pair[0])
+
+
 def budgets() -> list[tuple[str, Budget]]:
     """Every (arm, budget) a claim needs, by budget, then in :data:`ARMS`' order."""
     needed = {(arm, claim.budget) for claim in CLAIMS for arm in (claim.better, claim.worse)}
-    return sorted(needed, key=lambda pair: (pair[1], list(ARMS).index(pair[0])))
+    return sorted(needed, key=_run_order)
 
 
 def _slug(name: str) -> str:
@@ -614,7 +619,7 @@ def _pairs(arms: list[str] | None, steps: list[int] | None, batch: int = 1) -> l
     where an arm stands at another budget)."""
     if arms and steps:
         pairs = ((a, Budget(s, batch)) for a in arms for s in steps)
-        return sorted(pairs, key=lambda pair: (pair[1], list(ARMS).index(pair[0])))
+        return sorted(pairs, key=_run_order)
     return [(a, b) for a, b in budgets() if (not arms or a in arms) and (not steps or b.steps in steps)]
 
 
