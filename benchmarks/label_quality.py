@@ -33,6 +33,7 @@ import numpy as np
 
 from occkit.classes import OCC3D
 from occkit.data.labels import read_occ3d_labels
+from occkit.data.names import folder_name
 from occkit.geometry.grid import OCC3D_GRID
 from occkit.labeling.pipeline import SUMMARY_FILE, LabelConfig, label_dataset
 from occkit.metrics.confusion import confusion_matrix, geometry_iou, iou_from_confusion, miou
@@ -48,10 +49,6 @@ VARIANTS: dict[str, LabelConfig] = {
 MASKS = {"camera": "mask_camera", "lidar": "mask_lidar", "none": None}
 
 
-def _slug(name: str) -> str:
-    return "".join(c if c.isalnum() else "-" for c in name).strip("-")
-
-
 def ensure_world(args: argparse.Namespace) -> None:
     """Simulate the world into ``--data`` unless a world with lidarseg is there."""
     if (args.data / "v1.0-synth" / "lidarseg.json").is_file():
@@ -64,10 +61,14 @@ def ensure_world(args: argparse.Namespace) -> None:
     simulate_dataset(config, args.data, workers=args.workers, overwrite=args.data.exists())
 
 
+def _labels_folder(args: argparse.Namespace, variant: str) -> Path:
+    return args.out / "labels" / folder_name(variant)
+
+
 def label_variant(name: str, args: argparse.Namespace) -> dict:
     """Label the world with one variant (reused when its labels exist with the same settings); its summary."""
     config = VARIANTS[name]
-    out = args.out / "labels" / _slug(name)
+    out = _labels_folder(args, name)
     summary_file = out / SUMMARY_FILE
     if summary_file.is_file():
         summary = json.loads(summary_file.read_text())
@@ -144,7 +145,7 @@ def recall_by_distance(labels: Path, data: Path) -> dict:
 
 def train_on(labels: str, label_root: Path | None, args: argparse.Namespace) -> dict:
     """``daocc_tiny`` trained on the world's training scenes with the given labels, scored on exact val labels."""
-    result_file = args.out / f"train-{_slug(labels)}.json"
+    result_file = args.out / f"train-{folder_name(labels)}.json"
     if result_file.is_file():
         return json.loads(result_file.read_text())
     import torch
@@ -160,7 +161,7 @@ def train_on(labels: str, label_root: Path | None, args: argparse.Namespace) -> 
                                                                           label_root=label_folder))  # fmt: skip
     experiment = replace_train(experiment, max_steps=args.train_steps, epochs=10_000, val_every=-1,
                                checkpoint_every=100, seed=0)  # fmt: skip
-    folder = args.runs / _slug(labels)
+    folder = args.runs / folder_name(labels)
     print(f"[labels] daocc_tiny on {labels} labels: training {args.train_steps} steps into {folder}", flush=True)
     start = time.perf_counter()
     train(experiment, folder, resume="auto", progress=False)
@@ -244,7 +245,7 @@ def main() -> None:
     report: dict = {"world": world, "workers": args.workers, "variants": {}}
     for name in args.variants:
         summary = label_variant(name, args)
-        scores = score(args.out / "labels" / _slug(name), args.data)
+        scores = score(_labels_folder(args, name), args.data)
         report["frames"] = scores["frames"]
         report["variants"][name] = {"config": summary["config"], "scores": scores,
                                     "seconds_per_key_frame": summary["seconds_per_key_frame"],
@@ -254,11 +255,11 @@ def main() -> None:
               flush=True)  # fmt: skip
     best = max(report["variants"], key=lambda name: report["variants"][name]["scores"]["camera"]["miou"])
     report["recall_by_distance"] = {"variant": best,
-                                    "classes": recall_by_distance(args.out / "labels" / _slug(best), args.data)}
+                                    "classes": recall_by_distance(_labels_folder(args, best), args.data)}
     if args.train_steps:
         label_variant(args.train_on, args)
         report["training"] = [train_on("exact", None, args),
-                              train_on(args.train_on, args.out / "labels" / _slug(args.train_on), args)]  # fmt: skip
+                              train_on(args.train_on, _labels_folder(args, args.train_on), args)]  # fmt: skip
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "label_quality.json").write_text(json.dumps(report, indent=2) + "\n")
     (args.out / "label_quality.md").write_text(markdown(report))

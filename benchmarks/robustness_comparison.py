@@ -23,6 +23,7 @@ from matplotlib.lines import Line2D
 from tqdm import tqdm
 
 from occkit.data.corruptions import CORRUPTIONS
+from occkit.data.names import folder_name
 from occkit.figure import new_figure, save_figure
 from occkit.robustness import run_robustness
 
@@ -32,10 +33,6 @@ MODELS = {
     "daocc_tiny LiDAR only": "LiDAR only",
     "daocc_tiny camera only": "camera only",
 }
-
-
-def _slug(name: str) -> str:
-    return name.replace(" ", "_")
 
 
 def _pct(value: float | None) -> str:
@@ -176,11 +173,11 @@ def main() -> None:
     reports: dict[str, dict] = {}
     baseline = None
     for name in MODELS:
-        checkpoint = args.runs / _slug(name) / "500-steps" / "seed-0" / "step-00000500.pt"
+        checkpoint = args.runs / folder_name(name) / "500-steps" / "seed-0" / "step-00000500.pt"
         if not checkpoint.is_file():
             sys.exit(f"{checkpoint} not found: train the arm first (python benchmarks/study.py --arms '{name}' "
                      "--steps 500)")  # fmt: skip
-        out = args.out / _slug(name)
+        out = args.out / folder_name(name)
         print(f"[robustness] {name}: {checkpoint} -> {out}", flush=True)
         began = time.perf_counter()
         with tqdm(total=0, unit="frame", mininterval=30) as bar:

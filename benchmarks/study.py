@@ -49,6 +49,7 @@ import torch
 
 from occkit import zoo
 from occkit.classes import DETECTION_CLASSES
+from occkit.data.names import folder_name
 from occkit.engine.evaluate import evaluation_dataset, load_trained, score_model
 from occkit.engine.train import train
 from occkit.experiment import Experiment, replace_train
@@ -242,10 +243,6 @@ def budgets() -> list[tuple[str, Budget]]:
     return sorted(needed, key=_run_order)
 
 
-def _slug(name: str) -> str:
-    return "".join(c if c.isalnum() or c == "_" else "-" for c in name.replace(" ", "_")).strip("-")
-
-
 def _cpu_seconds() -> float:
     """CPU seconds of this process and its finished children (the data loader's workers)."""
     own, children = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
@@ -277,7 +274,7 @@ def finished_run(result_file: Path, data: Path) -> dict | None:
 def run_folder(root: Path, name: str, budget: Budget, seed: int) -> Path:
     """Where one run of arm ``name`` at ``budget`` lives under ``root``: its result file's folder under ``--out``, its
     checkpoints under ``--runs``."""
-    return root / _slug(name) / budget.folder / f"seed-{seed}"
+    return root / folder_name(name) / budget.folder / f"seed-{seed}"
 
 
 def result_path(out: Path, name: str, budget: Budget, seed: int) -> Path:
@@ -357,7 +354,7 @@ def _finished(out: Path) -> dict[str, list[dict]]:
     """Arm -> its finished runs, by budget, then seed."""
     runs = {}
     for name in ARMS:
-        files = (out / _slug(name)).glob("*-steps*/seed-*.json")
+        files = (out / folder_name(name)).glob("*-steps*/seed-*.json")
         found = [json.loads(f.read_text()) for f in files]
         runs[name] = sorted(found, key=lambda run: (Budget.of(run), run["seed"]))
     return runs

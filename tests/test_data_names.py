@@ -8,6 +8,7 @@ import pytest
 
 from occkit.data.names import (
     UnsafeNameError,
+    folder_name,
     is_safe_name,
     is_safe_relative_path,
     path_under,
@@ -60,3 +61,20 @@ def test_path_under_for_a_token_file_name(tmp_path):
     with pytest.raises(UnsafeNameError):
         path_under(out, safe_name("../../escape_tok", "token") + ".npz", "--out")
     assert path_under(out, Path("sub/x.npz"), "--out") == out / "sub" / "x.npz"
+
+
+@pytest.mark.parametrize(("label", "folder"), [
+    ("da_occ_tiny - BEV vertical DAC", "da_occ_tiny_-_BEV_vertical_DAC"),
+    ("da_occ_tiny + 1 frame", "da_occ_tiny_-_1_frame"),
+    ("daocc_tiny camera only", "daocc_tiny_camera_only"),
+    ("all sweeps + Poisson", "all_sweeps_-_Poisson"),
+    (" -x.y/z é ", "x-y-z"),
+])  # fmt: skip
+def test_folder_names_of_labels(label, folder):
+    assert folder_name(label) == folder and is_safe_name(folder)
+
+
+@pytest.mark.parametrize("label", ["", " - ", "a" * 129])
+def test_a_label_with_no_folder_name_is_refused(label):
+    with pytest.raises(UnsafeNameError, match="folder for"):
+        folder_name(label)

@@ -31,6 +31,7 @@ __all__ = [
     "safe_name",
     "safe_relative_path",
     "path_under",
+    "folder_name",
 ]
 
 #: Longest accepted name (nuScenes tokens have 32 characters).
@@ -38,6 +39,7 @@ MAX_NAME_LENGTH = 128
 
 _NAME = re.compile(rf"[A-Za-z0-9][A-Za-z0-9._-]{{0,{MAX_NAME_LENGTH - 1}}}")
 _DRIVE = re.compile(r"[A-Za-z]:")
+_NOT_IN_FOLDER_NAME = re.compile(r"[^A-Za-z0-9_]")
 _NAME_RULE = f"1 to {MAX_NAME_LENGTH} of A-Z a-z 0-9 . _ -, starting with a letter or digit"
 
 
@@ -106,3 +108,15 @@ def path_under(
     where)``.
     """
     return Path(root) / safe_relative_path(relative, where, error)
+
+
+def folder_name(label: str) -> str:
+    """``label``, a name people read (a study arm ``"da_occ_tiny - BEV vertical DAC"``, a labelling variant
+    ``"all sweeps + Poisson"``), as the name of the folder its files go to: spaces become ``_``, every other character
+    outside ``A-Z a-z 0-9 _`` becomes ``-``, and ``-`` or ``_`` at either end is dropped
+    (``"da_occ_tiny_-_BEV_vertical_DAC"``). The result is a safe name (:func:`safe_name`).
+
+    Raises:
+        UnsafeNameError: nothing of ``label`` is left, or it is longer than :data:`MAX_NAME_LENGTH`.
+    """
+    return safe_name(_NOT_IN_FOLDER_NAME.sub("-", label.replace(" ", "_")).strip("-_"), f"folder for {label!r}")
