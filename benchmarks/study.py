@@ -466,6 +466,11 @@ def _objects(lowest: float) -> str:
     return f"{lowest:.2f}" + (" (ground only)" if lowest < OBJECTS_LEARNED else "")
 
 
+def _p(p: float) -> str:
+    """A p-value as the report shows it: three decimals, ``< 0.001`` below what they can show."""
+    return "< 0.001" if p < 0.0005 else f"{p:.3f}"
+
+
 def _cell(summary: dict, key: str) -> str:
     value = summary[key]
     return f"{100 * value['mean']:.2f} ± {100 * value['std']:.2f}"
@@ -501,7 +506,7 @@ def claims_table(verdicts: list[dict]) -> list[str]:
         status = f"**{v['status']}**" if v["status"] in ("holds", "reversed") else v["status"]
         detectable = f"{v['detectable']:.2f}" if v["status"] == "no effect detected" else "-"
         lines.append(f"{head}{len(v['seeds'])} | {_where(v)} | {v['difference']:+.2f} ({low:+.2f} to {high:+.2f}) | "
-                     f"{v['p']:.3f} | {v['iou_difference']:+.2f} | {_objects(v['objects'])} | {status} | "
+                     f"{_p(v['p'])} | {v['iou_difference']:+.2f} | {_objects(v['objects'])} | {status} | "
                      f"{detectable} |")  # fmt: skip
     return lines
 
