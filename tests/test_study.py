@@ -9,6 +9,8 @@ from pathlib import Path
 
 import pytest
 
+from occkit.data.names import folder_name
+
 REPO = Path(__file__).resolve().parents[1]
 BETTER, WORSE = "da_occ_tiny", "flashocc_tiny"  # the arms of the claim "DA-Occ beats FlashOcc at matched size"
 #: Every object class at 5% IoU: a run that has learned objects.
@@ -207,7 +209,7 @@ def test_the_committed_verdicts_recompute_from_their_seed_files(study):
         return run.get("device", "CPU"), (run.get("world") or {}).get("sha256")
 
     def runs_of(arm, budget):
-        files = folder.glob(f"{study._slug(arm)}/{study.Budget(**budget).folder}/seed-*.json")
+        files = folder.glob(f"{folder_name(arm)}/{study.Budget(**budget).folder}/seed-*.json")
         runs = [json.loads(path.read_text()) for path in files]
         return {(setting(run), run["seed"]): run for run in runs}
 
