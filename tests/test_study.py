@@ -9,8 +9,6 @@ from pathlib import Path
 
 import pytest
 
-from occkit.data.names import folder_name
-
 REPO = Path(__file__).resolve().parents[1]
 BETTER, WORSE = "da_occ_tiny", "flashocc_tiny"  # the arms of the claim "DA-Occ beats FlashOcc at matched size"
 #: Every object class at 5% IoU: a run that has learned objects.
@@ -208,9 +206,10 @@ def test_the_committed_verdicts_recompute_from_their_seed_files(study):
     def setting(run):
         return run.get("device", "CPU"), (run.get("world") or {}).get("sha256")
 
+    finished = study._finished(folder)  # the seed files, read as the study reads them
+
     def runs_of(arm, budget):
-        files = folder.glob(f"{folder_name(arm)}/{study.Budget(**budget).folder}/seed-*.json")
-        runs = [json.loads(path.read_text()) for path in files]
+        runs = [run for run in finished[arm] if study.Budget.of(run) == study.Budget(**budget)]
         return {(setting(run), run["seed"]): run for run in runs}
 
     tested = 0
