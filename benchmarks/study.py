@@ -642,8 +642,9 @@ def _worker_threads(threads: int) -> None:
 def run_all(args: argparse.Namespace) -> None:
     """Every run the arms need, ``--jobs`` at a time; the summary is rewritten (and committed) as each lands.
 
-    Several at a time pays on a GPU, where one batch-1 run leaves the device mostly idle; the runs of a pool share
-    the CPU cores (``cpu_count // jobs`` threads each).
+    Several at a time pays on a GPU, where one batch-1 run leaves the device mostly idle, and on a small CPU too,
+    where one run's threads leave its cores partly idle (its data loading, Python and small kernels run on one
+    thread); the runs of a pool share the CPU cores (``cpu_count // jobs`` threads each).
     """
 
     def landed(name: str, budget: Budget, seed: int) -> None:
