@@ -408,6 +408,17 @@ def welch(a: list[float], b: list[float]) -> dict[str, float]:
             "detectable": float((critical + stats.t.ppf(POWER, df)) * error)}  # fmt: skip
 
 
+def holm(p_values: list[float]) -> list[float]:
+    """Holm's step-down adjustment of ``p_values`` for testing them together: the k-th smallest is multiplied by
+    ``m - k + 1`` (``m`` tests), capped at 1 and never below the adjusted value before it, so that comparing each
+    adjusted value with :data:`ALPHA` keeps the chance of any false "holds" among the ``m`` below ALPHA."""
+    adjusted, running = [0.0] * len(p_values), 0.0
+    for rank, index in enumerate(sorted(range(len(p_values)), key=p_values.__getitem__)):
+        running = max(running, min(1.0, (len(p_values) - rank) * p_values[index]))
+        adjusted[index] = running
+    return adjusted
+
+
 def _setting(run: dict) -> tuple[str, str | None]:
     """Where a run trained: its device and its world's content hash (None where the run did not record it)."""
     return run.get("device", "CPU"), (run.get("world") or {}).get("sha256")
@@ -494,20 +505,20 @@ def arms_table(summaries: list[dict]) -> list[str]:
 def claims_table(verdicts: list[dict]) -> list[str]:
     """The markdown table of the claims' verdicts (:func:`verdict`), beside the papers' own gains."""
     lines = ["| paper | claim | paper's gain (mIoU) | better | worse | budget | seeds | run on | "
-             "mIoU difference (95% interval) | p | IoU difference | objects | verdict | detectable |",
-             "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]  # fmt: skip
+             "mIoU difference (95% interval) | p | p (Holm) | IoU difference | objects | verdict | detectable |",
+             "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]  # fmt: skip
     for v in verdicts:
         head = (f"| {v['paper']} | {v['text']} | {v['paper_gain']} | `{v['better']}` | `{v['worse']}` | "
                 f"{Budget(**v['budget'])} | ")  # fmt: skip
         if "difference" not in v:
-            lines.append(f"{head}{len(v.get('seeds', []))} | {_where(v)} | - | - | - | - | {v['status']} | - |")
+            lines.append(f"{head}{len(v.get('seeds', []))} | {_where(v)} | - | - | - | - | - | {v['status']} | - |")
             continue
         low, high = v["ci95"]
         status = f"**{v['status']}**" if v["status"] in ("holds", "reversed") else v["status"]
         detectable = f"{v['detectable']:.2f}" if v["status"] == "no effect detected" else "-"
         lines.append(f"{head}{len(v['seeds'])} | {_where(v)} | {v['difference']:+.2f} ({low:+.2f} to {high:+.2f}) | "
-                     f"{_p(v['p'])} | {v['iou_difference']:+.2f} | {_objects(v['objects'])} | {status} | "
-                     f"{detectable} |")  # fmt: skip
+                     f"{_p(v['p'])} | {_p(v['p_holm'])} | {v['iou_difference']:+.2f} | {_objects(v['objects'])} | "
+                     f"{status} | {detectable} |")  # fmt: skip
     return lines
 
 
@@ -552,6 +563,9 @@ def build_report(out: Path, data: Path) -> tuple[dict, dict[str, list[str]]]:
             done = [r for r in arm_runs if Budget.of(r) == budget]
             summaries.append({"arm": name, "budget": str(budget), **summarise(done)})
     verdicts = [{**dataclasses.asdict(claim), **verdict(claim, runs)} for claim in CLAIMS]
+    tested = [v for v in verdicts if "p" in v]
+    for v, adjusted in zip(tested, holm([v["p"] for v in tested]), strict=True):
+        v["p_holm"] = adjusted  # corrected for the number of claims tested so far
     hours: dict[str, dict[str, float]] = {}  # device -> wall-clock and CPU hours of its runs (training + scoring)
     for run in (r for arm_runs in runs.values() for r in arm_runs):
         device = hours.setdefault(run.get("device", "CPU"), {"runs": 0, "wall_hours": 0.0, "cpu_hours": 0.0})

@@ -108,13 +108,19 @@ def test_verdicts_follow_welchs_test_as_scipy_computes_it(study, better, worse, 
         assert result["detectable"] > abs(result["difference"])
 
 
+def test_holms_adjustment(study):
+    # Sorted 0.005, 0.01, 0.03, 0.04 times 4, 3, 2, 1: 0.02, 0.03, 0.06, then 0.04 lifted to the 0.06 before it.
+    assert study.holm([0.01, 0.04, 0.03, 0.005]) == pytest.approx([0.03, 0.06, 0.06, 0.02])
+    assert study.holm([0.3, 0.6]) == [0.6, 0.6] and study.holm([0.01, 0.01]) == [0.02, 0.02]  # capped; ties alike
+    assert study.holm([0.02]) == [0.02] and study.holm([]) == []
+
+
 def test_a_claim_needs_two_matched_seeds_and_one_budget(study):
     claim = next(c for c in study.CLAIMS if (c.better, c.worse) == (BETTER, WORSE))
     runs = _runs([0.2, 0.3], [0.1])
     assert study.verdict(claim, runs)["status"] == "too few matched seeds (1)"
     runs[WORSE].append({"seed": 7, "steps": 1728, "batch_size": 4, "miou": 0.1, "iou": 0.5})  # only one arm's seed
     assert study.verdict(claim, runs)["status"] == "too few matched seeds (1)"
-    # Runs at another budget are not this claim's.
     # Runs at another budget (here 1728 steps of batch 1) are not this claim's.
     other = study.Budget(BUDGET.steps)
     result = study.verdict(claim, _runs([0.2, 0.3], [0.1, 0.2], (BUDGET, other)))
@@ -233,6 +239,13 @@ def test_the_committed_verdicts_recompute_from_their_seed_files(study):
         assert claim["status"] == expected, claim["text"]
         tested += 1
     assert tested >= 1
+    # Holm's adjustment over the claims tested: each p times the number of claims at or below it in rank, never
+    # below a smaller p's adjusted value.
+    ps = [claim["p"] for claim in summary["claims"] if "p" in claim]
+    for claim in (c for c in summary["claims"] if "p" in c):
+        ranked = sorted(ps)
+        expected = max(min(1.0, (len(ps) - k) * q) for k, q in enumerate(ranked) if q <= claim["p"])
+        assert claim["p_holm"] == pytest.approx(expected, rel=1e-12), claim["text"]
 
 
 def test_the_runs_picked_by_arms_and_budgets(study):
