@@ -241,10 +241,9 @@ def test_the_committed_verdicts_recompute_from_their_seed_files(study):
     assert tested >= 1
     # Holm's adjustment over the claims tested: each p times the number of claims at or below it in rank, never
     # below a smaller p's adjusted value.
-    ps = [claim["p"] for claim in summary["claims"] if "p" in claim]
+    ranked = sorted(claim["p"] for claim in summary["claims"] if "p" in claim)
     for claim in (c for c in summary["claims"] if "p" in c):
-        ranked = sorted(ps)
-        expected = max(min(1.0, (len(ps) - k) * q) for k, q in enumerate(ranked) if q <= claim["p"])
+        expected = max(min(1.0, (len(ranked) - k) * q) for k, q in enumerate(ranked) if q <= claim["p"])
         assert claim["p_holm"] == pytest.approx(expected, rel=1e-12), claim["text"]
 
 
