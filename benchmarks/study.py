@@ -282,8 +282,9 @@ def result_path(out: Path, name: str, budget: Budget, seed: int) -> Path:
     return run_folder(out, name, budget, seed).with_suffix(".json")
 
 
-def run_arm(name: str, budget: Budget, seed: int, args: argparse.Namespace) -> dict:
-    """Train and score one arm for ``budget`` at one seed; the stored result when it already ran on this world."""
+def run_arm(name: str, budget: Budget, seed: int, args: argparse.Namespace, threads: int | None = None) -> dict:
+    """Train and score one arm for ``budget`` at one seed, on ``threads`` CPU threads (the process's count when
+    None); the stored result when it already ran on this world."""
     result_file = result_path(args.out, name, budget, seed)
     if (run := finished_run(result_file, args.data)) is not None:
         return run
@@ -301,6 +302,11 @@ def run_arm(name: str, budget: Budget, seed: int, args: argparse.Namespace) -> d
     print(f"[study] {name}, seed {seed}: training {budget} into {folder}", flush=True)
     pointer = folder / "last.json"  # the checkpoint a resumed run starts from
     start_step = int(json.loads(pointer.read_text())["step"]) if pointer.is_file() else 0
+    # Set for each run, not once per process: scoring (RayIoU's numba kernels) resets the process's thread count,
+    # and a pool's worker trains one run after another.
+    if threads is not None:
+        torch.set_num_threads(threads)
+    train_threads = torch.get_num_threads()
     wall, cpu = time.perf_counter(), _cpu_seconds()
     run = train(experiment, folder, resume="auto", progress=args.progress)
     train_wall, train_cpu = time.perf_counter() - wall, _cpu_seconds() - cpu
@@ -323,7 +329,7 @@ def run_arm(name: str, budget: Budget, seed: int, args: argparse.Namespace) -> d
         "train_seconds": train_wall, "train_cpu_seconds": train_cpu, "resumed_from_step": start_step,
         "eval_seconds": time.perf_counter() - wall,
         "eval_cpu_seconds": _cpu_seconds() - cpu, "params": sum(p.numel() for p in model.parameters()),
-        "threads": torch.get_num_threads(), "device": _device_name(),
+        "threads": train_threads, "device": _device_name(),
         "world": {**WORLD, "data": str(args.data), "sha256": world_digest(args.data.resolve())},
     }  # fmt: skip
     result_file.parent.mkdir(parents=True, exist_ok=True)
@@ -649,10 +655,6 @@ def _todo(args: argparse.Namespace, running: set[Job]) -> list[Job]:
             and finished_run(result_path(args.out, name, budget, seed), args.data) is None]  # fmt: skip
 
 
-def _worker_threads(threads: int) -> None:
-    torch.set_num_threads(threads)
-
-
 def run_all(args: argparse.Namespace) -> None:
     """Every run the arms need, ``--jobs`` at a time; the summary is rewritten (and committed) as each lands.
 
@@ -673,11 +675,11 @@ def run_all(args: argparse.Namespace) -> None:
         return
     threads = max(1, (os.cpu_count() or 1) // args.jobs)
     context = multiprocessing.get_context("spawn")
-    with ProcessPoolExecutor(args.jobs, mp_context=context, initializer=_worker_threads, initargs=(threads,)) as pool:
+    with ProcessPoolExecutor(args.jobs, mp_context=context) as pool:
         running: dict[Future, Job] = {}
         while True:
             for job in _todo(args, set(running.values()))[: args.jobs - len(running)]:
-                running[pool.submit(run_arm, *job, args)] = job
+                running[pool.submit(run_arm, *job, args, threads)] = job
             if not running:
                 return
             done, _ = wait(running, return_when=FIRST_COMPLETED)
