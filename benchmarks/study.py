@@ -302,8 +302,7 @@ def run_arm(name: str, budget: Budget, seed: int, args: argparse.Namespace, thre
     print(f"[study] {name}, seed {seed}: training {budget} into {folder}", flush=True)
     pointer = folder / "last.json"  # the checkpoint a resumed run starts from
     start_step = int(json.loads(pointer.read_text())["step"]) if pointer.is_file() else 0
-    # Set for each run, not once per process: scoring (RayIoU's numba kernels) resets the process's thread count,
-    # and a pool's worker trains one run after another.
+    # Set for each run, and the count it trained with recorded: a pool's worker trains one run after another.
     if threads is not None:
         torch.set_num_threads(threads)
     train_threads = torch.get_num_threads()

@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import json
+import os
+import subprocess
+import sys
 import math
 from pathlib import Path
 
@@ -89,3 +92,21 @@ def test_rayiou_rejects_mismatched_frames():
     grid = np.full((200, 200, 16), 17, np.uint8)
     with pytest.raises(ValueError):
         rayiou([grid, grid], [grid], [np.zeros((1, 3))])
+
+
+def test_casting_keeps_the_callers_thread_count():
+    """numba's first parallel launch after torch has run a parallel region resets the shared OpenMP thread count;
+    casting puts the caller's back (a fresh process: the launch happens once per process)."""
+    script = (
+        "import numpy as np, torch\n"
+        "from occkit.metrics.rayiou import cast_rays_exact\n"
+        "torch.set_num_threads(1)\n"
+        "(torch.randn(256, 256) @ torch.randn(256, 256)).sum()\n"
+        "labels = np.full((200, 200, 16), 17, np.uint8)\n"
+        "cast_rays_exact(labels, np.zeros((1, 3)))\n"
+        "print(torch.get_num_threads())\n"
+    )
+    env = {key: value for key, value in os.environ.items() if key not in ("OMP_NUM_THREADS", "NUMBA_NUM_THREADS")}
+    env["NUMBA_NUM_THREADS"] = "2"  # numba's own count differs from the caller's even on a one-core machine
+    done = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True, check=True)
+    assert done.stdout.split()[-1] == "1"

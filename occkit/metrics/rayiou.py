@@ -26,7 +26,9 @@ import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
+import numba
 import numpy as np
+import torch
 from numba import njit, prange
 
 from occkit.label_space import OCC3D_SPACE, LabelSpace
@@ -256,7 +258,13 @@ def cast_rays_exact(
     out_label = np.empty(n, dtype=np.uint8)
     out_dist = np.empty(n, dtype=np.float32)
     out_voxel = np.empty((n, 3), dtype=np.int16)
+    # The kernel runs on the caller's torch thread count. numba's OpenMP layer shares torch's libgomp, and its first
+    # launch after torch has run a parallel region sets the process's count to numba's own (numba issue 9387): the
+    # caller's count is put back.
+    threads = torch.get_num_threads()
+    numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
     _cast_kernel(labels, free, _to_voxels(origins), ends, out_label, out_dist, out_voxel)
+    torch.set_num_threads(threads)
     if voxels:
         return out_label, out_dist * np.float32(_VOXEL), out_voxel.astype(np.int64)
     return out_label, out_dist * np.float32(_VOXEL)
