@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib
 import json
 import math
 import os
@@ -9,8 +10,10 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numba
 import numpy as np
 import pytest
+import torch
 
 from occkit.metrics.rayiou import RAYIOU_THRESHOLDS, cast_rays_exact, ray_directions, rayiou
 
@@ -104,9 +107,29 @@ def test_casting_keeps_the_callers_thread_count():
         "(torch.randn(256, 256) @ torch.randn(256, 256)).sum()\n"
         "labels = np.full((200, 200, 16), 17, np.uint8)\n"
         "cast_rays_exact(labels, np.zeros((1, 3)))\n"
-        "print(torch.get_num_threads())\n"
+        "import numba\n"
+        "print(torch.get_num_threads(), numba.get_num_threads())\n"
     )
     env = {key: value for key, value in os.environ.items() if key not in ("OMP_NUM_THREADS", "NUMBA_NUM_THREADS")}
     env["NUMBA_NUM_THREADS"] = "2"  # numba's own count differs from the caller's even on a one-core machine
     done = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True, check=True)
-    assert done.stdout.split()[-1] == "1"
+    assert done.stdout.split()[-2:] == ["1", "2"]
+
+
+def test_casting_restores_thread_counts_when_the_kernel_raises(monkeypatch):
+    module = importlib.import_module("occkit.metrics.rayiou")  # the package exports a function of that name
+
+    def failing_kernel(*args):
+        torch.set_num_threads(2)  # what numba's launch does to the shared OpenMP count
+        raise RuntimeError("kernel failed")
+
+    monkeypatch.setattr(module, "_cast_kernel", failing_kernel)
+    before_torch, before_numba = torch.get_num_threads(), numba.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        with pytest.raises(RuntimeError, match="kernel failed"):
+            module.cast_rays_exact(np.full((200, 200, 16), 17, np.uint8), np.zeros((1, 3)))
+        assert torch.get_num_threads() == 1
+        assert numba.get_num_threads() == before_numba
+    finally:
+        torch.set_num_threads(before_torch)

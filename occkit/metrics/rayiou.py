@@ -260,11 +260,14 @@ def cast_rays_exact(
     out_voxel = np.empty((n, 3), dtype=np.int16)
     # The kernel runs on the caller's torch thread count. numba's OpenMP layer shares torch's libgomp, and its first
     # launch after torch has run a parallel region sets the process's count to numba's own (numba issue 9387): the
-    # caller's count is put back.
-    threads = torch.get_num_threads()
+    # caller's count is put back, and numba's own, even when the kernel raises.
+    threads, numba_threads = torch.get_num_threads(), numba.get_num_threads()
     numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
-    _cast_kernel(labels, free, _to_voxels(origins), ends, out_label, out_dist, out_voxel)
-    torch.set_num_threads(threads)
+    try:
+        _cast_kernel(labels, free, _to_voxels(origins), ends, out_label, out_dist, out_voxel)
+    finally:
+        numba.set_num_threads(numba_threads)
+        torch.set_num_threads(threads)
     if voxels:
         return out_label, out_dist * np.float32(_VOXEL), out_voxel.astype(np.int64)
     return out_label, out_dist * np.float32(_VOXEL)
